@@ -1,0 +1,66 @@
+"""Every exception class of stircasadi lives here (STYLE.md rule 4).
+
+Messages say what was wrong, what is allowed, what was given and how to fix it.
+"""
+from __future__ import annotations
+
+
+class StircasadiError(Exception):
+    """Base class of all errors raised by stircasadi for bad input or failed work."""
+
+
+class SceneError(StircasadiError, ValueError):
+    """A scene or patch is malformed (zero area, non-unit normal, NaN position, unknown id...)."""
+
+
+class TimeGridError(StircasadiError, ValueError):
+    """A time grid is malformed or too short/late for the paths a simulation must record."""
+
+
+class BRDFError(StircasadiError, ValueError):
+    """BRDF parameters outside their physical range."""
+
+
+class SensorError(StircasadiError, ValueError):
+    """Impulse response or noise model malformed."""
+
+
+class CaptureError(StircasadiError, ValueError):
+    """A Capture (in memory or on disk) is malformed; the message names the field."""
+
+
+class TransportError(StircasadiError, ValueError):
+    """A forward-transport request that cannot be honoured as asked (method/scene mismatch)."""
+
+
+class GeometryError(StircasadiError, ValueError):
+    """The geometry stage cannot proceed (missing onsets, inconsistent distances...)."""
+
+
+class ModelError(StircasadiError, ValueError):
+    """A symbolic model is incomplete or used before/after setup()."""
+
+
+class SolverError(StircasadiError, RuntimeError):
+    """A numerical solve failed (IPOPT status, LM did not converge); never returned as a result."""
+
+    def __init__(self, message: str, status: str | None = None, stats: dict | None = None):
+        super().__init__(message)
+        self.status = status
+        self.stats = stats or {}
+
+
+class InstrumentError(StircasadiError, RuntimeError):
+    """An instrument misbehaved: stalled, sent garbage, disconnected. Names device, command, bytes."""
+
+
+class ImportFormatError(CaptureError):
+    """A file could not be imported in the named (or detected) format."""
+
+
+class IdentifiabilityWarning(UserWarning):
+    """A parameter is not identifiable from the data (its Fisher information is ~0)."""
+
+
+class PhysicsWarning(UserWarning):
+    """The small-patch approximation is strained (form-factor row sum > 1, etc.)."""
