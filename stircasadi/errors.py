@@ -64,3 +64,7 @@ class IdentifiabilityWarning(UserWarning):
 
 class PhysicsWarning(UserWarning):
     """The small-patch approximation is strained (form-factor row sum > 1, etc.)."""
+
+
+class AcquisitionSettingsError(StircasadiError, ValueError):
+    """An acquisition setting (port, baud rate, timeout, shots...) is outside its allowed range."""

@@ -1,0 +1,350 @@
+"""A binary-safe serial port for instruments: typed settings, deadlines, retries, clear errors.
+
+When to use: every driver in ``stircasadi.acquisition`` talks through :class:`Port`; open one with
+a :class:`SerialSettings` (only ``port`` is required, the rest have sensible defaults).
+
+Rules it enforces
+-----------------
+* Software flow control (XON/XOFF) is refused: 0x11/0x13 bytes occur in binary waveforms and
+  histograms and would be eaten by the line discipline. Use ``rtscts=True`` for hardware flow
+  control if the instrument needs it.
+* Reads never trust a single ``read()`` call: each reply has a *deadline*
+  ``timeout_s + n_bytes * per_byte_s`` that grows with the record length (the wire time of a
+  64 kB waveform at 115200 baud is 5.7 s), and partial data is kept for the error message.
+* Every failure raises :class:`~stircasadi.errors.InstrumentError` naming the device, the
+  command and the bytes that arrived (``err.device``, ``err.command``, ``err.received``).
+* Retries (``retries``) re-send a command after a timeout or a garbled reply, after draining the
+  input; a disconnected port is never retried (``err.disconnected`` is True).
+
+Neglects: VISA, GPIB and network transports; pyserial URLs (``loop://``, ``socket://``) work too.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, asdict
+from typing import Callable, TypeVar
+
+from ..errors import AcquisitionSettingsError, InstrumentError
+from .protocol import check_line, parse_block_header, preview
+
+T = TypeVar("T")
+
+_STANDARD_BAUDS = (300, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800,
+                   500000, 576000, 921600, 1000000, 2000000, 3000000, 4000000)
+
+
+@dataclass
+class SerialSettings:
+    """Settings of one serial link. Validated by :meth:`validate` (called by :class:`Port`)."""
+
+    #: device path (``/dev/ttyUSB0``, ``COM3``) or a pyserial URL
+    port: str = ""
+    #: line rate in bits per second (a standard rate)
+    baudrate: int = 115200
+    #: seconds allowed for a short reply (a line, a block header)
+    timeout_s: float = 2.0
+    #: extra seconds per byte of a long reply; ``None``: twice the wire time, 20 / baudrate
+    per_byte_s: float | None = None
+    #: seconds allowed to write one command
+    write_timeout_s: float = 2.0
+    #: line terminator of commands and replies
+    terminator: str = "\n"
+    #: how often a command is re-sent after a timeout or a garbled reply (0: never)
+    retries: int = 2
+    #: seconds to wait before a retry, while stale input is drained
+    retry_settle_s: float = 0.05
+    #: software flow control; must stay False (binary data contain XON/XOFF bytes)
+    xonxoff: bool = False
+    #: hardware (RTS/CTS) flow control
+    rtscts: bool = False
+    #: largest binary block accepted, bytes (a garbage header cannot make us wait for 900 MB)
+    max_block_bytes: int = 256 * 2**20
+    #: longest text line accepted, bytes
+    max_line_bytes: int = 65536
+
+    def validate(self) -> "SerialSettings":
+        if not isinstance(self.port, str) or not self.port:
+            raise AcquisitionSettingsError(
+                f"SerialSettings.port must name a serial device (e.g. '/dev/ttyUSB0', 'COM3'); "
+                f"got {self.port!r}.")
+        if self.baudrate not in _STANDARD_BAUDS:
+            raise AcquisitionSettingsError(
+                f"SerialSettings.baudrate must be a standard rate {_STANDARD_BAUDS}; got "
+                f"{self.baudrate!r}.")
+        for name in ("timeout_s", "write_timeout_s"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not v > 0 or v > 3600:
+                raise AcquisitionSettingsError(f"SerialSettings.{name} must be in (0, 3600] seconds; "
+                                               f"got {v!r}.")
+        if self.per_byte_s is not None and not (0 <= self.per_byte_s < 1):
+            raise AcquisitionSettingsError(f"SerialSettings.per_byte_s must be in [0, 1) s or None; "
+                                           f"got {self.per_byte_s!r}.")
+        if not isinstance(self.retries, int) or not 0 <= self.retries <= 20:
+            raise AcquisitionSettingsError(f"SerialSettings.retries must be an int in 0..20; got "
+                                           f"{self.retries!r}.")
+        if self.xonxoff:
+            raise AcquisitionSettingsError(
+                "SerialSettings.xonxoff=True is refused: XON/XOFF bytes (0x11, 0x13) occur inside "
+                "binary waveforms and histograms and would be swallowed. Use rtscts=True for flow "
+                "control, or leave both off.")
+        if not self.terminator or len(self.terminator.encode("ascii", "replace")) > 2:
+            raise AcquisitionSettingsError(f"SerialSettings.terminator must be 1-2 ASCII characters "
+                                           f"such as '\\n' or '\\r\\n'; got {self.terminator!r}.")
+        return self
+
+    @property
+    def per_byte(self) -> float:
+        return self.per_byte_s if self.per_byte_s is not None else 20.0 / self.baudrate
+
+    def timeout_for(self, n_bytes: int) -> float:
+        """Deadline in seconds for a reply of ``n_bytes`` (grows with the record length)."""
+        return float(self.timeout_s) + max(0, int(n_bytes)) * self.per_byte
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def instrument_error(device: str, command: str | None, what: str, received: bytes = b"",
+                     fix: str = "", disconnected: bool = False) -> InstrumentError:
+    """Build an ``InstrumentError`` whose message names device, command and bytes received."""
+    cmd = f"command {command!r}" if command else "no command"
+    msg = f"{device}: {cmd}: {what}; received {preview(received)}."
+    if fix:
+        msg += " " + fix
+    err = InstrumentError(msg)
+    err.device = device
+    err.command = command
+    err.received = bytes(received)
+    err.disconnected = disconnected
+    return err
+
+
+class Port:
+    """One open serial link to one instrument (context manager).
+
+    Parameters
+    ----------
+    settings : SerialSettings
+    device : str
+        Name used in error messages ("scope", "scan controller", "counter").
+    """
+
+    def __init__(self, settings: SerialSettings, device: str):
+        self.settings = settings.validate()
+        self.device = device
+        self.io = None
+        self.term = settings.terminator.encode("ascii")
+        #: number of retries spent so far (recorded in provenance)
+        self.retries_used = 0
+
+    # ------------------------------------------------------------------ open/close
+    def open(self) -> "Port":
+        import serial
+
+        s = self.settings
+        try:
+            io = serial.serial_for_url(s.port, do_not_open=True)
+            io.baudrate = s.baudrate
+            io.bytesize = serial.EIGHTBITS
+            io.parity = serial.PARITY_NONE
+            io.stopbits = serial.STOPBITS_ONE
+            io.xonxoff = False
+            io.rtscts = bool(s.rtscts)
+            io.timeout = s.timeout_s
+            io.write_timeout = s.write_timeout_s
+            io.open()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise instrument_error(self.device, None, f"cannot open port {s.port!r} ({exc})",
+                                   fix="Check the cable, the port name and that no other program "
+                                       "holds the port.", disconnected=True) from exc
+        self.io = io
+        try:
+            io.reset_input_buffer()
+        except Exception:  # pragma: no cover - some URL handlers lack it
+            pass
+        return self
+
+    def close(self) -> None:
+        if self.io is not None:
+            try:
+                self.io.close()
+            except Exception:  # pragma: no cover - closing a dead port
+                pass
+            self.io = None
+
+    def __enter__(self) -> "Port":
+        return self.open() if self.io is None else self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ raw I/O
+    def _need_open(self, command: str | None) -> None:
+        if self.io is None:
+            raise instrument_error(self.device, command, "port is not open",
+                                   fix="Use 'with Port(...)' or call open().")
+
+    def write(self, command: str) -> None:
+        """Send one command line (the terminator is appended)."""
+        import serial
+
+        self._need_open(command)
+        try:
+            self.io.reset_input_buffer()  # stale replies never answer a new command
+            self.io.write(command.encode("ascii") + self.term)
+            self.io.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise instrument_error(self.device, command, f"write failed, device disconnected? ({exc})",
+                                   fix="Reconnect the instrument and resume the capture.",
+                                   disconnected=True) from exc
+
+    def _read(self, n: int, deadline: float, command: str, sofar: bytes) -> bytes:
+        import serial
+
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return b""
+        self.io.timeout = remaining
+        try:
+            return self.io.read(n)
+        except (serial.SerialException, OSError) as exc:
+            raise instrument_error(self.device, command, f"device disconnected during the reply ({exc})",
+                                   sofar, fix="Reconnect the instrument and resume the capture.",
+                                   disconnected=True) from exc
+
+    def read_exact(self, n: int, command: str, timeout: float | None = None, sofar: bytes = b"") -> bytes:
+        """Read exactly ``n`` bytes before the deadline or raise (keeping what arrived)."""
+        self._need_open(command)
+        timeout = self.settings.timeout_for(n) if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        buf = bytearray()
+        while len(buf) < n:
+            chunk = self._read(n - len(buf), deadline, command, sofar + bytes(buf))
+            if not chunk:
+                if time.monotonic() >= deadline:
+                    raise instrument_error(
+                        self.device, command,
+                        f"timed out after {timeout:.3g} s waiting for {n} bytes, {len(buf)} arrived "
+                        "(stalled device or truncated block)", sofar + bytes(buf),
+                        fix="Check the instrument; raise SerialSettings.timeout_s/per_byte_s for "
+                            "long records.")
+                continue
+            buf += chunk
+        return bytes(buf)
+
+    def read_line(self, command: str, timeout: float | None = None) -> str:
+        """Read one terminated line of printable ASCII (terminator stripped)."""
+        self._need_open(command)
+        timeout = self.settings.timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        buf = bytearray()
+        while not buf.endswith(self.term):
+            if len(buf) > self.settings.max_line_bytes:
+                raise instrument_error(self.device, command,
+                                       f"reply line longer than {self.settings.max_line_bytes} bytes "
+                                       "without a terminator", bytes(buf))
+            self.io.timeout = max(1e-3, deadline - time.monotonic())
+            chunk = self._read(1, deadline, command, bytes(buf))
+            if not chunk:
+                if time.monotonic() >= deadline:
+                    raise instrument_error(
+                        self.device, command,
+                        f"no complete reply line (terminator {self.term!r}) within {timeout:.3g} s",
+                        bytes(buf), fix="Check the cable, the baud rate and the terminator setting.")
+                continue
+            buf += chunk
+        try:
+            return check_line(bytes(buf[:-len(self.term)]))
+        except InstrumentError as exc:
+            raise instrument_error(self.device, command, str(exc).rstrip("."), bytes(buf),
+                                   fix="Check the baud rate; noise on the line?") from None
+
+    def read_block(self, command: str, allowed_prefix: bytes = b"") -> bytes:
+        """Read one IEEE-488.2 definite-length block; returns the payload.
+
+        Leading whitespace and ``allowed_prefix`` (e.g. ``b':CURVE '``) before ``#`` are skipped;
+        anything else is garbage and raises.
+        """
+        self._need_open(command)
+        s = self.settings
+        deadline = time.monotonic() + s.timeout_s
+        pre = bytearray()
+        while True:
+            c = self._read(1, deadline, command, bytes(pre))
+            if not c:
+                if time.monotonic() >= deadline:
+                    raise instrument_error(self.device, command,
+                                           f"no binary block ('#') within {s.timeout_s:.3g} s", bytes(pre),
+                                           fix="Check that the instrument is armed and the command "
+                                               "is supported.")
+                continue
+            if c == b"#":
+                break
+            pre += c
+            stripped = bytes(pre).lstrip(b" \r\n")
+            if len(pre) > 64 or not (allowed_prefix.startswith(stripped) or stripped == b""):
+                raise instrument_error(self.device, command,
+                                       "garbage before the binary block header '#'", bytes(pre))
+        head = b"#" + self.read_exact(1, command, s.timeout_s, sofar=b"#")
+        try:
+            if not head[1:2].isdigit():
+                parse_block_header(head)
+            nd = int(head[1:2])
+            if nd == 0:
+                parse_block_header(head)
+            head += self.read_exact(nd, command, s.timeout_s, sofar=head)
+            hlen, length = parse_block_header(head)
+        except InstrumentError as exc:
+            if getattr(exc, "device", None):
+                raise
+            raise instrument_error(self.device, command, str(exc).rstrip("."), head) from None
+        if length > s.max_block_bytes:
+            raise instrument_error(self.device, command,
+                                   f"block header announces {length} bytes, more than "
+                                   f"max_block_bytes={s.max_block_bytes}", head,
+                                   fix="Raise SerialSettings.max_block_bytes if this is genuine.")
+        payload = self.read_exact(length, command, s.timeout_for(length), sofar=head)
+        # swallow the trailing terminator if the instrument sends one
+        self.io.timeout = 0.02
+        try:
+            tail = self.io.read(len(self.term))
+        except Exception:
+            tail = b""
+        if tail and tail != self.term[:len(tail)]:
+            raise instrument_error(self.device, command,
+                                   f"unexpected byte(s) after a {length}-byte block (expected the "
+                                   "terminator)", head + payload[-16:] + tail)
+        return payload
+
+    # ------------------------------------------------------------------ transactions
+    def query(self, command: str, timeout: float | None = None) -> str:
+        """Write ``command`` and read one reply line."""
+        self.write(command)
+        return self.read_line(command, timeout)
+
+    def query_block(self, command: str, allowed_prefix: bytes = b"") -> bytes:
+        """Write ``command`` and read one binary block."""
+        self.write(command)
+        return self.read_block(command, allowed_prefix)
+
+    def with_retries(self, fn: Callable[[], T], command: str) -> T:
+        """Run ``fn`` (one command/reply exchange) up to ``retries + 1`` times.
+
+        A disconnected port is not retried. The last error is raised, with the attempt count.
+        """
+        attempts = self.settings.retries + 1
+        for k in range(attempts):
+            try:
+                return fn()
+            except InstrumentError as exc:
+                if getattr(exc, "disconnected", False) or k == attempts - 1:
+                    if attempts > 1 and not getattr(exc, "disconnected", False):
+                        exc.args = (exc.args[0] + f" (failed {attempts} attempts)",)
+                    raise
+                self.retries_used += 1
+                time.sleep(self.settings.retry_settle_s)
+                try:
+                    self.io.reset_input_buffer()
+                except Exception:  # pragma: no cover
+                    pass
+        raise AssertionError("unreachable")  # pragma: no cover
