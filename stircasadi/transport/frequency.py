@@ -1,0 +1,206 @@
+"""All-bounce (or K-bounce) transport in the frequency domain: the resolvent of the delay network.
+
+When to use: the full STIR with every bounce (interreflections to convergence), fast for
+hundreds of patches: per frequency one complex M x M solve. Needs a band-limited sensor
+(Gaussian impulse response) in exact-delay mode; in integer-delay mode any sensor works (the
+DFT of whole-bin delays is exact).
+
+Equation: with the network of ``stircasadi.transport.system`` and F[f](w) = int f(t) e^{-iwt} dt,
+
+    Y(w) = O(w) (I - T(w))^{-1} S(w),     X(w)_rc = sum_terms coef e^{-i w length}        (all)
+    Y_K(w) = sum_{n=1..K} O(w) T(w)^{n-1} S(w)                                             (K)
+
+and bin k (left edge t_k) of the STIR is the band-limited inverse transform
+
+    y_k = 1/P sum_m Y(w_m) G(w_m) e^{i w_m t_k},  w_m = 2 pi m / P,
+    G(w) = IRF(w) (e^{i w dt} - 1) / (i w)        (the impulse response integrated over a bin).
+
+Truncation error, bounded and reported:
+* band: frequencies are kept while |IRF(w)| > 1e-17 (Gaussian), so the band error is below
+  1e-17 of the signal;
+* time aliasing: the sum is periodic with period P = N dt. Paths arriving after start + P wrap
+  around. P is chosen so every path with fewer than b bounces arrives inside the period, where
+  the energy of all paths with >= b bounces, E_{>=b} = 1^T O T0^{b-1} (I - T0)^{-1} S 1 (exact,
+  at w = 0), is below ``tail_tol`` of the total. The achieved bound is reported as
+  ``alias_energy_bound_rel`` (an upper bound on the summed absolute error of the wrapped part).
+The spectral radius of T0 must be < 1 (no energy created); otherwise a TransportError is raised.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.fft as sfft
+from scipy.sparse.linalg import spsolve
+
+from ..errors import TransportError
+from ..timegrid import TimeGrid
+from .deposit import bin_integer_samples
+from .system import TransportSystem
+
+
+class _DenseBuilder:
+    """Scatter terms (row, col, coef, length) into dense complex matrices for many frequencies."""
+
+    def __init__(self, terms, shape):
+        r, c, v, l = terms
+        self.shape = shape
+        flat = r * shape[1] + c
+        order = np.argsort(flat, kind="stable")
+        flat, v, l = flat[order], v[order], l[order]
+        first = np.ones(len(flat), bool)
+        first[1:] = flat[1:] != flat[:-1]
+        self.f_idx, self.f_v, self.f_l = flat[first], v[first], l[first]
+        self.d_idx, self.d_v, self.d_l = flat[~first], v[~first], l[~first]
+
+    def at(self, omega: np.ndarray) -> np.ndarray:
+        F = len(omega)
+        out = np.zeros((F, self.shape[0] * self.shape[1]), complex)
+        out[:, self.f_idx] = self.f_v[None, :] * np.exp(-1j * omega[:, None] * self.f_l[None, :])
+        if len(self.d_idx):
+            vals = self.d_v[None, :] * np.exp(-1j * omega[:, None] * self.d_l[None, :])
+            for f in range(F):
+                np.add.at(out[f], self.d_idx, vals[f])
+        return out.reshape(F, *self.shape)
+
+
+def bounce_energies(system: TransportSystem, n_max: int) -> tuple[np.ndarray, float]:
+    """Exact time-integrated energy (summed over the STIR) of bounces 1..n_max, and the total."""
+    S0, T0, O0 = system.steady_matrices()
+    v = S0 @ np.ones(system.n_ill)
+    ones_o = np.ones(system.n_obs) @ O0
+    e = np.empty(n_max)
+    for n in range(n_max):
+        e[n] = ones_o @ v
+        v = T0 @ v
+    total_v = spsolve((_identity(system.n_nodes) - T0).tocsc(), S0 @ np.ones(system.n_ill))
+    total = float(ones_o @ np.atleast_1d(total_v))
+    return e, total
+
+
+def _identity(n):
+    from scipy import sparse
+    return sparse.identity(n, format="csr")
+
+
+def spectral_radius(system: TransportSystem) -> float:
+    """Spectral radius of the non-negative transfer matrix T0 (< 1 for a physical scene)."""
+    _, T0, _ = system.steady_matrices()
+    n = T0.shape[0]
+    if n == 0 or T0.nnz == 0:
+        return 0.0
+    if n <= 600:
+        return float(np.max(np.abs(np.linalg.eigvals(T0.toarray()))))
+    from scipy.sparse.linalg import eigs
+    return float(np.abs(eigs(T0, k=1, which="LM", return_eigenvectors=False)[0]))
+
+
+def plan_period(system: TransportSystem, grid: TimeGrid, irf, bounces: int | None,
+                tail_tol: float, max_factor: int) -> tuple[int, dict]:
+    """Choose the FFT length N (period N*dt) and report the aliasing bound."""
+    w = grid.bin_width
+    lo_s, hi_s = (0.0, 0.0) if system.delay_mode == "integer" else irf.support()
+    if system.delay_mode == "integer":
+        h, off = irf.discrete(w)
+        lo_s, hi_s = -off * w, (len(h) - off) * w
+    t_lo, _ = system.arrival_window(1)
+    info: dict = {}
+    if bounces is not None:
+        _, t_hi = system.arrival_window(bounces)
+        info["alias_energy_bound_rel"] = 0.0
+    else:
+        rho = spectral_radius(system)
+        info["spectral_radius"] = rho
+        if rho >= 1.0:
+            raise TransportError(f"The scene's transfer operator has spectral radius {rho:.4g} >= 1: "
+                                 "interreflections would create energy (albedos too high for patches "
+                                 "this large and close). Lower albedos or subdivide the patches.")
+        n_cap = 10_000
+        e, total = bounce_energies(system, min(n_cap, 4096))
+        tail = total - np.cumsum(np.concatenate([[0.0], e]))  # tail[b] = energy of bounces > b
+        tail = np.maximum(tail, 0.0)
+        t_max_cap = grid.start + max_factor * grid.n_bins * w
+        b_ok = 1
+        for b in range(1, len(e) + 1):
+            if system.arrival_window(b)[1] + hi_s > t_max_cap:
+                break
+            b_ok = b
+            if total <= 0 or tail[b] <= tail_tol * total:
+                break
+        _, t_hi = system.arrival_window(b_ok)
+        info["alias_energy_bound_rel"] = float(tail[b_ok] / total) if total > 0 else 0.0
+        info["bounces_inside_period"] = b_ok
+        info["total_energy"] = total
+    span_hi = max(t_hi + hi_s, grid.end)
+    span_lo = min(grid.start, t_lo + lo_s)
+    n = int(math.ceil((span_hi - span_lo) / w)) + 2
+    n = max(n, grid.n_bins)
+    if system.delay_mode == "integer":
+        # the sample grid starts at t=0 in integer mode: cover [0, span_hi]
+        n = max(n, int(math.ceil(span_hi / w)) + 2)
+    n = sfft.next_fast_len(n, real=True)
+    info["fft_length"] = n
+    return n, info
+
+
+def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int | None = None,
+                    tail_tol: float = 1e-10, max_factor: int = 16, chunk_bytes: float = 2.5e8):
+    """STIR (n_ill, n_obs, n_bins) by the resolvent (bounces=None) or its K-term Neumann sum."""
+    integer = system.delay_mode == "integer"
+    if not integer and not getattr(irf, "band_limited", False):
+        raise TransportError(
+            f"The frequency-domain method with exact delays needs a band-limited impulse response "
+            f"(GaussianIRF); the sensor has '{irf.describe()}'. Use method='bounces' (exact path "
+            "sums, any sensor), delay_mode='integer', or give the sensor a GaussianIRF.")
+    N, info = plan_period(system, grid, irf, bounces, tail_tol, max_factor)
+    w = grid.bin_width
+    P = N * w
+    if integer:
+        m_max = N // 2
+    else:
+        m_max = int(math.ceil(irf.band_limit() * P / (2 * math.pi)))
+    info["n_frequencies"] = m_max + 1
+    ms = np.arange(m_max + 1)
+    omega = 2 * math.pi * ms / P
+    nu, ni, no = system.n_nodes, system.n_ill, system.n_obs
+    Sb, Tb, Ob = (_DenseBuilder(system.S, (nu, ni)), _DenseBuilder(system.T, (nu, nu)),
+                  _DenseBuilder(system.O, (no, nu)))
+    spec = np.zeros((ni, no, m_max + 1), complex)
+    per_freq = 16 * (3 * nu * nu + 2 * nu * ni + no * nu + no * ni)
+    fchunk = max(1, int(chunk_bytes // max(per_freq, 1)))
+    eye = np.eye(nu)
+    for s in range(0, len(omega), fchunk):
+        om = omega[s:s + fchunk]
+        Sw, Tw, Ow = Sb.at(om), Tb.at(om), Ob.at(om)
+        if bounces is None:
+            X = np.linalg.solve(eye[None] - Tw, Sw)
+            Y = Ow @ X
+        else:
+            V = Sw
+            Y = Ow @ V
+            for _ in range(bounces - 1):
+                V = Tw @ V
+                Y += Ow @ V
+        spec[:, :, s:s + len(om)] = np.transpose(Y, (2, 1, 0))
+    if integer:
+        # samples at t = n*w (n = 0..N-1), then bins k = n - start/w, then the discrete IRF
+        # the DFT of whole-bin delays is exact: irfft returns, at sample n, the sum of the
+        # amplitudes of the paths whose delay is n bins (no aliasing: N covers every path)
+        y = sfft.irfft(spec, n=N, axis=-1)
+        return bin_integer_samples(y, grid, irf), info
+    G = np.empty(len(omega), complex)
+    G[0] = w
+    om = omega[1:]
+    G[1:] = irf.fourier(om) * (np.exp(1j * om * w) - 1.0) / (1j * om)
+    Z = spec * (G * np.exp(1j * omega * grid.start))[None, None, :]
+    if m_max <= N // 2:
+        # Hermitian: y_k = (Z_0 + 2 Re sum_{m>=1} Z_m e^{2 pi i m k / N}) / P  == irfft with weights
+        full = np.zeros((ni, no, N // 2 + 1), complex)
+        full[:, :, :m_max + 1] = Z
+        y = sfft.irfft(full, n=N, axis=-1) * (N / P)
+    else:
+        F = np.zeros((ni, no, N), complex)
+        for m in range(1, m_max + 1):
+            F[:, :, m % N] += Z[:, :, m]
+        y = (Z[:, :, :1].real + 2.0 * (sfft.ifft(F, axis=-1) * N).real) / P
+    return np.ascontiguousarray(y[:, :, :grid.n_bins]), info
