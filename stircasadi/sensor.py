@@ -95,7 +95,7 @@ class GaussianIRF:
         """Fourier transform of the (centred) density, exp(-sigma^2 omega^2 / 2)."""
         return np.exp(-0.5 * (self.sigma * omega) ** 2)
 
-    def band_limit(self, tol: float = 1e-17) -> float:
+    def band_limit(self, tol: float = 1e-15) -> float:
         """Angular frequency (rad per metre) above which the spectrum is below ``tol``."""
         return math.sqrt(-2.0 * math.log(tol)) / self.sigma
 

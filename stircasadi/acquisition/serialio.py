@@ -29,6 +29,9 @@ from .protocol import check_line, parse_block_header, preview
 
 T = TypeVar("T")
 
+#: seconds of one blocking read slice; every reply has its own, longer, deadline
+_POLL_S = 0.02
+
 _STANDARD_BAUDS = (300, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800,
                    500000, 576000, 921600, 1000000, 2000000, 3000000, 4000000)
 
@@ -104,6 +107,16 @@ class SerialSettings:
         return asdict(self)
 
 
+def _io_errors() -> tuple:
+    """Exceptions that mean the link itself failed (unplugged cable, hung-up pty)."""
+    import serial
+    try:
+        import termios
+        return (serial.SerialException, OSError, termios.error)
+    except ImportError:  # pragma: no cover - Windows
+        return (serial.SerialException, OSError)
+
+
 def instrument_error(device: str, command: str | None, what: str, received: bytes = b"",
                      fix: str = "", disconnected: bool = False) -> InstrumentError:
     """Build an ``InstrumentError`` whose message names device, command and bytes received."""
@@ -150,10 +163,10 @@ class Port:
             io.stopbits = serial.STOPBITS_ONE
             io.xonxoff = False
             io.rtscts = bool(s.rtscts)
-            io.timeout = s.timeout_s
+            io.timeout = _POLL_S  # reads poll in short slices against their own deadline
             io.write_timeout = s.write_timeout_s
             io.open()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except _io_errors() + (ValueError,) as exc:
             raise instrument_error(self.device, None, f"cannot open port {s.port!r} ({exc})",
                                    fix="Check the cable, the port name and that no other program "
                                        "holds the port.", disconnected=True) from exc
@@ -193,7 +206,7 @@ class Port:
             self.io.reset_input_buffer()  # stale replies never answer a new command
             self.io.write(command.encode("ascii") + self.term)
             self.io.flush()
-        except (serial.SerialException, OSError) as exc:
+        except _io_errors() as exc:
             raise instrument_error(self.device, command, f"write failed, device disconnected? ({exc})",
                                    fix="Reconnect the instrument and resume the capture.",
                                    disconnected=True) from exc
@@ -201,13 +214,11 @@ class Port:
     def _read(self, n: int, deadline: float, command: str, sofar: bytes) -> bytes:
         import serial
 
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
+        if deadline - time.monotonic() <= 0:
             return b""
-        self.io.timeout = remaining
         try:
             return self.io.read(n)
-        except (serial.SerialException, OSError) as exc:
+        except _io_errors() as exc:
             raise instrument_error(self.device, command, f"device disconnected during the reply ({exc})",
                                    sofar, fix="Reconnect the instrument and resume the capture.",
                                    disconnected=True) from exc
@@ -243,7 +254,6 @@ class Port:
                 raise instrument_error(self.device, command,
                                        f"reply line longer than {self.settings.max_line_bytes} bytes "
                                        "without a terminator", bytes(buf))
-            self.io.timeout = max(1e-3, deadline - time.monotonic())
             chunk = self._read(1, deadline, command, bytes(buf))
             if not chunk:
                 if time.monotonic() >= deadline:
@@ -305,7 +315,6 @@ class Port:
                                    fix="Raise SerialSettings.max_block_bytes if this is genuine.")
         payload = self.read_exact(length, command, s.timeout_for(length), sofar=head)
         # swallow the trailing terminator if the instrument sends one
-        self.io.timeout = 0.02
         try:
             tail = self.io.read(len(self.term))
         except Exception:

@@ -1,0 +1,1 @@
+"""Problem-definition scripts: one importable factory per scene (see stircasadi.problem)."""

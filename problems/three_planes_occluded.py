@@ -1,0 +1,32 @@
+"""Fig. 13: the three planes of Fig. 11 with the second (left) surface occluded from the camera
+by a screen. Its 49 patches are hidden: found from third bounces off the two visible surfaces."""
+from __future__ import annotations
+
+from stircasadi.scene import Scene
+
+from . import three_planes as _base
+from ._common import standard_main
+
+NAME = "three_planes_occluded"
+build_grid = _base.build_grid
+build_sensor = _base.build_sensor
+plane_labels = _base.plane_labels
+
+
+def build_scene() -> Scene:
+    return _base.build_scene(occluded=True)
+
+
+def truth() -> dict:
+    t = build_scene().truth_dict()
+    t["plane"] = plane_labels()
+    return t
+
+
+def main() -> None:
+    import sys
+    standard_main(sys.modules[__name__])
+
+
+if __name__ == "__main__":
+    main()
