@@ -1,0 +1,242 @@
+"""Importers: known answers from files written to the published layouts, and fuzzed bad input."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from stircasadi.acquisition.importers import (capture_from_histograms, detect_format, import_file,
+                                              phu_to_capture)
+from stircasadi.constants import C
+from stircasadi.errors import ImportFormatError
+
+FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+RNG = np.random.default_rng(7)
+
+
+def write_ytal(path, H, hformat, delta_t=0.01, t_start=0.5, legs=False, sensor=None, laser=None):
+    with h5py.File(path, "w") as f:
+        f["H"] = H
+        dt = h5py.enum_dtype({"UNKNOWN": 0, "T_Sx_Sy": 1, "T_Lx_Ly_Sx_Sy": 2, "T_Si": 3, "T_Li_Si": 4},
+                             basetype="i")
+        ds = f.create_dataset("H_format", (1,), dtype=dt)
+        ds[0] = hformat
+        f["delta_t"] = delta_t
+        f["t_start"] = t_start
+        f["t_accounts_first_and_last_bounces"] = legs
+        if sensor is not None:
+            f["sensor_grid_xyz"] = sensor
+        if laser is not None:
+            f["laser_grid_xyz"] = laser
+        f["sensor_xyz"] = np.array([0.0, 0.0, 1.0])
+        f["laser_xyz"] = np.array([0.1, 0.0, 1.0])
+        f["scene_info"] = "original_format: HDF5_TAL"
+
+
+def test_ytal_confocal(tmp_path):
+    H = RNG.random((40, 4, 5)).astype(np.float32)   # (T, Sx, Sy)
+    g = np.stack(list(np.meshgrid(np.arange(4.0), np.arange(5.0), indexing="ij")) + [np.zeros((4, 5))], -1)
+    p = tmp_path / "c.hdf5"
+    write_ytal(p, H, 1, sensor=g, laser=g)
+    assert detect_format(p) == "ytal"
+    cap = import_file(p)
+    assert cap.traces.shape == (20, 40) and not cap.legs_included
+    assert cap.grid.start == pytest.approx(0.5) and cap.grid.bin_width == pytest.approx(0.01)
+    np.testing.assert_allclose(cap.trace(7, 7), H[:, 1, 2])   # row-major Sx, Sy -> id 1*5+2
+    np.testing.assert_allclose(cap.source_xyz, [0.1, 0, 1])
+
+
+def test_ytal_exhaustive(tmp_path):
+    H = RNG.random((30, 2, 2, 3, 1))               # (T, Lx, Ly, Sx, Sy)
+    p = tmp_path / "e.hdf5"
+    write_ytal(p, H, 2, legs=True, sensor=RNG.random((3, 1, 3)), laser=RNG.random((2, 2, 3)))
+    cap = import_file(p, "ytal")
+    assert cap.stir.shape == (4, 3, 30) and cap.legs_included
+    np.testing.assert_allclose(cap.stir[3, 2], H[:, 1, 1, 2, 0])
+
+
+def test_znlos_confocal_sums_bounces_and_colors(tmp_path):
+    D = RNG.random((4, 4, 3, 25, 2))               # (sy, sx, bounces, t, colors)
+    p = tmp_path / "z.hdf5"
+    with h5py.File(p, "w") as f:
+        f["data"] = D
+        f["deltaT"] = 0.001
+        f["t0"] = 0.2
+        f["cameraPosition"] = np.array([[0.0], [0.0], [1.0]])
+        f["laserPosition"] = np.array([[0.1], [0.0], [1.0]])
+    assert detect_format(p) == "znlos"
+    cap = import_file(p)
+    assert cap.legs_included and cap.traces.shape == (16, 25)
+    # y-tal's conversion keeps the file's first scan axis first: id 7 = (1, 3) -> D[1, 3]
+    np.testing.assert_allclose(cap.trace(7, 7), D[1, 3].sum(axis=(0, 2)))
+    assert cap.grid.start == pytest.approx(0.2)
+
+
+def test_csv_and_units(tmp_path):
+    p = tmp_path / "t.csv"
+    t_ps = 100 + 10 * np.arange(6)
+    rows = "\n".join(f"{t},{k},{2 * k}" for k, t in enumerate(t_ps))
+    p.write_text("time_ps,ill0_obs1,ill2_obs0\n" + rows + "\n")
+    cap = import_file(p)
+    assert cap.pairs.tolist() == [[0, 1], [2, 0]]
+    assert cap.grid.bin_width == pytest.approx(10e-12 * C)
+    assert cap.grid.start == pytest.approx(95e-12 * C)   # first sample is a bin centre
+    np.testing.assert_allclose(cap.trace(2, 0), 2 * np.arange(6))
+
+
+def test_npz_roundtrip(tmp_path):
+    stir = RNG.random((2, 3, 10))
+    p = tmp_path / "a.npz"
+    np.savez(p, stir=stir, start=1.0, bin_width=0.5, time_unit="ns", legs_included=False)
+    cap = import_file(p)
+    np.testing.assert_array_equal(cap.stir, stir)
+    assert cap.grid.bin_width == pytest.approx(0.5e-9 * C) and not cap.legs_included
+
+
+def test_ptu_real_file(tmp_path):
+    ptufile = pytest.importorskip("ptufile")
+    data = RNG.poisson(2.0, (2, 3, 64)).astype(np.uint16)   # (Y, X, H)
+    p = tmp_path / "scan.ptu"
+    ptufile.imwrite(p, data, global_resolution=1e-7, tcspc_resolution=16e-12)
+    cap = import_file(p)
+    assert cap.traces.shape[0] == 6
+    np.testing.assert_array_equal(cap.traces[:, :64], data.reshape(6, 64))
+    assert cap.grid.bin_width == pytest.approx(16e-12 * C)
+
+
+def test_histogram_conversion_stub():
+    """STUB of ptufile's return values (PHU cannot be written with ptufile): the conversion path."""
+    cap = phu_to_capture("stub.phu", [np.arange(8), np.ones(8)], [4e-12, 4e-12])
+    assert cap.stir.shape == (1, 2, 8) and cap.grid.bin_width == pytest.approx(4e-12 * C)
+    with pytest.raises(ImportFormatError, match="share one resolution"):
+        phu_to_capture("stub.phu", [np.arange(8), np.ones(8)], [4e-12, 8e-12])
+    with pytest.raises(ImportFormatError, match="negative photon"):
+        capture_from_histograms("stub.ptu", [[1, -1, 2]], 4e-12, "ptu")
+
+
+def test_unknown_and_missing(tmp_path):
+    p = tmp_path / "x.bin"
+    p.write_bytes(b"\0" * 10)
+    with pytest.raises(ImportFormatError, match="ptu, phu|stanford-lct"):
+        import_file(p)
+    with pytest.raises(ImportFormatError, match="unknown format 'xyz'"):
+        import_file(p, "xyz")
+    q = tmp_path / "bad.ptu"
+    q.write_bytes(b"PQTTTR\0\0garbage")
+    with pytest.raises(ImportFormatError, match="PTU"):
+        import_file(q)
+
+
+def test_detects_real_mat_files():
+    import pathlib
+    d = pathlib.Path("/work/shared/data")
+    if not d.exists():
+        pytest.skip("shared real data not mounted")
+    assert detect_format(d / "otoole2018_confocal/data_s_u.mat") == "stanford-lct"
+    assert detect_format(d / "fk2019_statue_confocal/sub_Sig.mat") == "ccsocr"
+    assert detect_format(d / "generalnlos2024_tuan/data_tuan.mat") == "general-nlos"
+
+
+# ------------------------------------------------------------------ fuzzing
+floats = st.floats(allow_nan=True, allow_infinity=True, width=32)
+
+
+@FUZZ
+@given(vals=st.lists(st.lists(floats, min_size=1, max_size=4), min_size=1, max_size=6),
+       header=st.sampled_from(["time_ps,a", "time_zz,a", "t,a", "time_ns,ill0_obs0,ill1_obs1",
+                               "nope,a", "time_s"]),
+       unit=st.sampled_from([None, "ps", "furlong"]))
+def test_fuzz_csv(tmp_path, vals, header, unit):
+    p = tmp_path / "f.csv"
+    body = "\n".join(",".join(repr(v) for v in row) for row in vals)
+    p.write_text(header + "\n" + body + "\n")
+    try:
+        cap = import_file(p, "csv", time_unit=unit)
+    except ImportFormatError:
+        return
+    assert np.all(np.isfinite(cap.traces))
+    assert cap.traces.shape[1] == len(vals)
+
+
+@FUZZ
+@given(shape=st.lists(st.integers(0, 4), min_size=0, max_size=6),
+       hformat=st.integers(-1, 6), delta_t=floats, t_start=floats, nan=st.booleans(),
+       legs=st.sampled_from([True, False, None]))
+def test_fuzz_ytal(tmp_path, shape, hformat, delta_t, t_start, nan, legs):
+    p = tmp_path / "f.hdf5"
+    H = np.ones(shape)
+    if nan and H.size:
+        H.flat[0] = np.nan
+    with h5py.File(p, "w") as f:
+        f["H"] = H
+        f["H_format"] = hformat
+        f["delta_t"] = delta_t
+        f["t_start"] = t_start
+        if legs is not None:
+            f["t_accounts_first_and_last_bounces"] = legs
+    try:
+        cap = import_file(p)
+    except ImportFormatError:
+        return
+    data = cap.stir if cap.stir is not None else cap.traces
+    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+    assert data.size == H.size
+
+
+@FUZZ
+@given(shape=st.lists(st.integers(0, 7), min_size=1, max_size=8), dt=floats, t0=floats)
+def test_fuzz_znlos(tmp_path, shape, dt, t0):
+    p = tmp_path / "f.hdf5"
+    with h5py.File(p, "w") as f:
+        f["data"] = np.ones(shape)
+        f["deltaT"] = dt
+        f["t0"] = t0
+    try:
+        cap = import_file(p)
+    except ImportFormatError:
+        return
+    data = cap.stir if cap.stir is not None else cap.traces
+    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+
+
+@FUZZ
+@given(arr=st.lists(floats, min_size=0, max_size=12), ndim=st.integers(1, 4),
+       key=st.sampled_from(["stir", "traces", "junk"]), unit=st.sampled_from(["ps", "m", "parsec"]),
+       width=floats)
+def test_fuzz_npz(tmp_path, arr, ndim, key, unit, width):
+    a = np.asarray(arr, dtype=float)
+    a = a.reshape((1,) * (ndim - 1) + (a.size,))
+    p = tmp_path / "f.npz"
+    extra = {"pairs": np.zeros((a.shape[0] if a.ndim else 0, 2), int)} if key == "traces" else {}
+    np.savez(p, **{key: a}, start=0.0, bin_width=width, time_unit=unit, **extra)
+    try:
+        cap = import_file(p)
+    except ImportFormatError:
+        return
+    data = cap.stir if cap.stir is not None else cap.traces
+    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+
+
+@FUZZ
+@given(blob=st.binary(min_size=0, max_size=300), prefix=st.sampled_from([b"", b"PQTTTR\0\0", b"PQHISTO\0"]),
+       ext=st.sampled_from([".ptu", ".phu"]))
+def test_fuzz_picoquant_garbage(tmp_path, blob, prefix, ext):
+    p = tmp_path / ("f" + ext)
+    p.write_bytes(prefix + blob)
+    with pytest.raises(ImportFormatError):
+        import_file(p)
+
+
+@FUZZ
+@given(hist=st.lists(st.lists(st.one_of(st.floats(-5, 1e6), st.sampled_from([np.nan, np.inf])),
+                              min_size=1, max_size=5), min_size=1, max_size=3),
+       res=st.one_of(floats, st.just(4e-12)))
+def test_fuzz_histogram_conversion(hist, res):
+    lens = {len(h) for h in hist}
+    try:
+        cap = capture_from_histograms("stub", hist if len(lens) == 1 else [h[:1] for h in hist], res, "ptu")
+    except ImportFormatError:
+        return
+    assert np.all(cap.stir >= 0) and np.all(np.isfinite(cap.stir))
