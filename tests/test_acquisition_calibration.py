@@ -57,10 +57,10 @@ def test_coates_undoes_emulated_pileup(tmp_path):
         h = det.acquire(n_sync)
     raw_err = np.abs(h.sum() / n_sync - lam.sum()) / lam.sum()
     corr = coates(h, n_sync) / n_sync
-    assert raw_err > 0.2                                      # pile-up visibly loses photons
+    assert raw_err > 0.08                                     # pile-up loses ~12 % of photons
     assert corr.sum() == pytest.approx(lam.sum(), rel=0.01)    # corrected total within 1 %
-    late = slice(80, 110)
-    np.testing.assert_allclose(corr[:, late], lam[:, late], rtol=0.1, atol=3e-5)
+    late = slice(33, 48)                                     # the pulse (bins after its leading edge)
+    np.testing.assert_allclose(corr[:, late], lam[:, late], rtol=0.05)
     cap = Capture(grid=GRID, stir=h[None], noise={"model": "poisson", "shots": n_sync})
     assert pileup_correct(cap).stir.sum() == pytest.approx(corr.sum() * n_sync, rel=1e-9)
 

@@ -488,7 +488,14 @@ def _mat_reader(name: str) -> Callable:
                                     f"not available ({exc}).") from exc
         fn = getattr(nlos_mat, "read_" + name.replace("-", "_"), None)
         if fn is not None:
-            return fn(path, **opts)
+            import inspect
+            params = inspect.signature(fn).parameters
+            unused = [k for k, v in opts.items() if k not in params and v is not None
+                      and k not in ("legs_included", "time_unit")]
+            if unused:
+                raise ImportFormatError(f"format {name!r} does not take option(s) {unused}; it takes "
+                                        f"{[k for k in params if k != 'path']}.")
+            return fn(path, **{k: v for k, v in opts.items() if k in params and v is not None})
         if hasattr(nlos_mat, "read"):
             return nlos_mat.read(path, name, **opts)
         raise ImportFormatError(f"stircasadi.acquisition.nlos_mat has no reader for {name!r}.")
@@ -539,6 +546,15 @@ def detect_format(path) -> str:
         raise ImportFormatError(f"{p}: HDF5 layout not recognised (top-level keys {sorted(keys)[:12]}); "
                                 f"known formats: {format_list()}. Pass --format.")
     if ext == ".mat":
+        try:
+            from . import nlos_mat
+            found = nlos_mat.detect(p)
+            if found in MAT_FORMATS:
+                return found
+        except ImportError:  # pragma: no cover - nlos_mat ships with the package
+            pass
+        except Exception:  # fall back to the variable names below
+            pass
         try:
             from scipy.io import whosmat
             names = {n for n, _, _ in whosmat(str(p))}
