@@ -187,7 +187,10 @@ def tek_waveform(pre: dict, payload: bytes) -> Waveform:
         raise InstrumentError("YMULT is 0; the waveform cannot be scaled to volts.")
     dt = np.dtype(("i" if fmt == "RI" else "u") + str(nb)).newbyteorder(">" if order == "MSB" else "<")
     raw = np.frombuffer(payload, dtype=dt).astype(np.float64)
-    volts = (raw - pre["YOFF"]) * pre["YMULT"] + pre["YZERO"]
+    with np.errstate(over="ignore", invalid="ignore"):
+        volts = (raw - pre["YOFF"]) * pre["YMULT"] + pre["YZERO"]
+    if not np.all(np.isfinite(volts)):
+        raise InstrumentError("scaled waveform overflows (YMULT/YOFF/YZERO out of range).")
     t0 = pre["XZERO"] - pre["PT_OFF"] * pre["XINCR"]
     return Waveform(volts=volts, t0_s=float(t0), dt_s=float(pre["XINCR"]), header=dict(pre))
 
@@ -265,7 +268,10 @@ def lecroy_waveform(block: bytes) -> Waveform:
     if hunit != "S":
         raise InstrumentError(f"LeCroy HORUNIT {hunit!r} is not supported; allowed: 'S' (seconds).")
     raw = np.frombuffer(data, dtype=np.dtype("i1" if width == 1 else e + "i2")).astype(np.float64)
-    volts = gain * raw - offset
+    with np.errstate(over="ignore", invalid="ignore"):
+        volts = gain * raw - offset
+    if not np.all(np.isfinite(volts)):
+        raise InstrumentError("LeCroy scaled waveform overflows (VERTICAL_GAIN/OFFSET out of range).")
     hdr = {"COMM_TYPE": comm_type, "COMM_ORDER": 1 if e == "<" else 0, "WAVE_ARRAY_COUNT": count,
            "VERTICAL_GAIN": gain, "VERTICAL_OFFSET": offset, "HORIZ_INTERVAL": hint,
            "HORIZ_OFFSET": hoff}
