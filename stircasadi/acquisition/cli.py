@@ -39,17 +39,19 @@ def _ids(text: str | None, what: str):
 
 
 def _run_import(args) -> int:
-    from .importers import import_file
+    from .importers import detect_format, import_file
 
     opts = {}
     if args.time_unit:
         opts["time_unit"] = args.time_unit
     if args.rectified:
         opts["legs_included"] = False
-    cap = import_file(args.file, args.format, **opts)
+    fmt = args.format or detect_format(args.file)
+    cap = import_file(args.file, fmt, **opts)
+    cap.provenance.setdefault("source_format", fmt)
     out = cap.write(args.out)
     data = cap.stir if cap.stir is not None else cap.traces
-    print(f"import: {args.file} ({cap.provenance.get('source_format')}) -> {out}: "
+    print(f"import: {args.file} ({fmt}) -> {out}: "
           f"{'stir' if cap.stir is not None else 'traces'} {data.shape}, {cap.grid}")
     return 0
 
