@@ -61,7 +61,7 @@ def simulate(scene: Scene, grid: TimeGrid, sensor: Sensor | None = None, method:
              bounces: int | str | None = None, delay_mode: str = "exact",
              legs_included: bool = True, allow_truncation: bool = False,
              per_bounce: bool = False, link_level: bool = False,
-             tail_tol: float = 1e-10) -> Transient:
+             tail_tol: float = 1e-10, out=None) -> Transient:
     """Simulate the ideal STIR of ``scene`` on ``grid`` through ``sensor``'s impulse response.
 
     Parameters
@@ -73,6 +73,8 @@ def simulate(scene: Scene, grid: TimeGrid, sensor: Sensor | None = None, method:
     legs_included : False gives relay-wall style times without the source and camera legs.
     allow_truncation : permit a grid that starts after the first arrival or ends before the
         last path of the requested order (otherwise a ``TimeGridError`` says what grid is needed).
+    out : optional array-like of the STIR's shape (``np.memmap``, h5py dataset) that the
+        frequency method fills block by block, for scenes whose STIR should not sit in memory.
     """
     if not isinstance(scene, Scene):
         raise TransportError(f"simulate needs a Scene; got {type(scene).__name__}.")
@@ -121,7 +123,7 @@ def simulate(scene: Scene, grid: TimeGrid, sensor: Sensor | None = None, method:
         res = path_sum(system, grid, irf, K, per_bounce=per_bounce)
         stir, parts = res if per_bounce else (res, None)
     elif method == "frequency":
-        stir, info = frequency_solve(system, grid, irf, K, tail_tol=tail_tol)
+        stir, info = frequency_solve(system, grid, irf, K, tail_tol=tail_tol, out=out)
         meta.update(info)
     else:
         if bounces is not None and K is not None:
@@ -132,6 +134,9 @@ def simulate(scene: Scene, grid: TimeGrid, sensor: Sensor | None = None, method:
         stir = simulate_state_space(ss, system, grid, irf)
         K = None  # the state space carries every bounce
         meta["bounces"] = "all"
+    if out is not None and method != "frequency":
+        out[...] = stir
+        stir = out
     meta.update(_energy_report(system, K, stir))
     meta["wall_time_s"] = time.perf_counter() - t0
     return Transient(stir=stir, grid=grid, ill_ids=system.ill_ids, obs_ids=system.obs_ids,

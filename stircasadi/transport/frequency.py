@@ -160,8 +160,16 @@ def plan_period(system: TransportSystem, grid: TimeGrid, irf, bounces: int | Non
 
 
 def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int | None = None,
-                    tail_tol: float = 1e-10, max_factor: int = 16, chunk_bytes: float = 2.5e8):
-    """STIR (n_ill, n_obs, n_bins) by the resolvent (bounces=None) or its K-term Neumann sum."""
+                    tail_tol: float = 1e-10, max_factor: int = 16, chunk_bytes: float = 2.5e8,
+                    block_bytes: float = 1.5e9, out=None):
+    """STIR (n_ill, n_obs, n_bins) by the resolvent (bounces=None) or its K-term Neumann sum.
+
+    Memory: the pulses (STIR rows) are processed in blocks so the spectrum held at once stays
+    under ``block_bytes``; with ``out`` (any array-like of the STIR's shape: an ``np.memmap`` or
+    an h5py dataset) each block is written there as it is finished, so the working memory is
+    O(M^2 + M T) per pulse of the block rather than the whole STIR. The LU factors are
+    recomputed per block (one block, i.e. no extra work, whenever everything fits).
+    """
     integer = system.delay_mode == "integer"
     if not integer and not getattr(irf, "band_limited", False):
         raise TransportError(
@@ -171,17 +179,39 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
     N, info = plan_period(system, grid, irf, bounces, tail_tol, max_factor)
     w = grid.bin_width
     P = N * w
-    if integer:
-        m_max = N // 2
-    else:
-        m_max = int(math.ceil(irf.band_limit() * P / (2 * math.pi)))
+    m_max = N // 2 if integer else int(math.ceil(irf.band_limit() * P / (2 * math.pi)))
     info["n_frequencies"] = m_max + 1
-    ms = np.arange(m_max + 1)
-    omega = 2 * math.pi * ms / P
+    omega = 2 * math.pi * np.arange(m_max + 1) / P
     nu, ni, no = system.n_nodes, system.n_ill, system.n_obs
-    Sb, Tb, Ob = (_DenseBuilder(system.S, (nu, ni)), _DenseBuilder(system.T, (nu, nu)),
-                  _DenseBuilder(system.O, (no, nu)))
-    spec = np.zeros((m_max + 1, ni, no), complex)
+    shape = (ni, no, grid.n_bins)
+    if out is None:
+        out = np.zeros(shape)
+    elif tuple(out.shape) != shape:
+        raise TransportError(f"out must have the STIR's shape {shape}; got {tuple(out.shape)}.")
+    per_pulse = no * (16 * (m_max + 1) + 8 * N + 16 * N + 8 * grid.n_bins)
+    block = int(max(1, min(ni, block_bytes // max(per_pulse, 1))))
+    info["pulse_blocks"] = int(math.ceil(ni / block))
+    Tb, Ob = _DenseBuilder(system.T, (nu, nu)), _DenseBuilder(system.O, (no, nu))
+    G = None
+    if not integer:
+        G = np.empty(len(omega), complex)
+        G[0] = w
+        om = omega[1:]
+        G[1:] = irf.fourier(om) * (np.exp(1j * om * w) - 1.0) / (1j * om)
+        G *= np.exp(1j * omega * grid.start)
+    r, c, v, l = system.S
+    for c0 in range(0, ni, block):
+        c1 = min(ni, c0 + block)
+        sel = (c >= c0) & (c < c1)
+        Sb = _DenseBuilder((r[sel], c[sel] - c0, v[sel], l[sel]), (nu, c1 - c0))
+        spec = _spectrum(Sb, Tb, Ob, omega, bounces, nu, c1 - c0, no, chunk_bytes)
+        out[c0:c1] = _to_time(spec, grid, irf, N, P, m_max, G, integer)
+    return out, info
+
+
+def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes):
+    """Y(w) for every frequency, shape (F, n_ill_block, n_obs)."""
+    spec = np.zeros((len(omega), ni, no), complex)
     per_freq = 16 * (3 * nu * nu + 2 * nu * ni + no * nu + no * ni)
     fchunk = max(1, int(chunk_bytes // max(per_freq, 1)))
     diag = np.arange(nu)
@@ -203,17 +233,18 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
                 V = Tw @ V
                 Y += Ob.apply_left(om, V)
         spec[s:s + len(om)] = np.transpose(Y, (0, 2, 1))
+    return spec
+
+
+def _to_time(spec, grid, irf, N, P, m_max, G, integer):
+    """Band-limited inverse transform of Y(w) (F, a, b) to binned time (a, b, n_bins)."""
     if integer:
-        # samples at t = n*w (n = 0..N-1), then bins k = n - start/w, then the discrete IRF
-        # the DFT of whole-bin delays is exact: irfft returns, at sample n, the sum of the
-        # amplitudes of the paths whose delay is n bins (no aliasing: N covers every path)
+        # samples at t = n*w (n = 0..N-1), then bins k = n - start/w, then the discrete IRF:
+        # the DFT of whole-bin delays is exact, irfft returns at sample n the summed amplitude
+        # of the paths whose delay is n bins (no aliasing: N covers every path)
         y = np.moveaxis(sfft.irfft(spec, n=N, axis=0), 0, -1)
-        return bin_integer_samples(y, grid, irf), info
-    G = np.empty(len(omega), complex)
-    G[0] = w
-    om = omega[1:]
-    G[1:] = irf.fourier(om) * (np.exp(1j * om * w) - 1.0) / (1j * om)
-    spec *= (G * np.exp(1j * omega * grid.start))[:, None, None]
+        return bin_integer_samples(y, grid, irf)
+    spec *= G[:, None, None]
     if m_max <= N // 2:
         # Hermitian: y_k = (Z_0 + 2 Re sum_{m>=1} Z_m e^{2 pi i m k / N}) / P  == irfft * N / P
         if m_max < N // 2:
@@ -224,4 +255,4 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
         for m in range(1, m_max + 1):
             F[m % N] += spec[m]
         y = (spec[:1].real + 2.0 * (sfft.ifft(F, axis=0) * N).real)[:grid.n_bins] / P
-    return np.ascontiguousarray(np.moveaxis(y, 0, -1)), info
+    return np.moveaxis(y, 0, -1)
