@@ -44,7 +44,11 @@ def where(cond, a, b):
 
 
 def power(a, p):
-    """``a ** p`` for a >= 0 (p may be symbolic)."""
+    """``a ** p`` for a >= 0 (p may be symbolic).
+
+    Symbolically, ``0 ** p`` is guarded by ``if_else``: CasADi's derivative of ``a ** p`` with
+    respect to p is ``a ** p * log(a)``, which is NaN at a = 0 (a Phong lobe outside its cone).
+    """
     if is_symbolic(a, p):
-        return a ** p
+        return ca.if_else(a > 0, a ** p, 0.0 * a)
     return np.power(a, p)

@@ -1,0 +1,192 @@
+"""Settings of the reflectance / joint-geometry estimators: typed dataclasses, validated.
+
+Every field has a docstring (the attribute docstring below it); ``validate()`` raises a
+``ModelError`` that names the field, the allowed values, what was given and the fix.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+from ..errors import ModelError
+
+_COSTS = ("oem", "pem")
+_LIKELIHOODS = ("gaussian", "poisson")
+_WEIGHTINGS = ("noise", "relative", "none")
+_HESSIANS = ("exact", "gauss-newton", "limited-memory")
+_LM_METHODS = ("lm", "trf")
+_JACOBIANS = ("ad", "fd")
+
+
+def _choice(name, value, allowed):
+    if value not in allowed:
+        raise ModelError(f"{name} must be one of {allowed}; got {value!r}.")
+
+
+def _positive(name, value, allow_zero=False):
+    ok = value >= 0 if allow_zero else value > 0
+    if not isinstance(value, (int, float)) or not ok:
+        raise ModelError(f"{name} must be a number {'>=' if allow_zero else '>'} 0; got {value!r}.")
+
+
+@dataclass
+class CostSettings:
+    """What is minimised."""
+
+    cost: str = "oem"
+    """``"oem"``: output error (simulated STIR vs data). ``"pem"``: one-step prediction error
+    with an AR(1) noise model y_k = M_k + e_k, e_k = a e_{k-1} + v_k estimated jointly (the
+    innovations form of a deterministic transport model); it equals OEM when a = 0."""
+    likelihood: str = "gaussian"
+    """``"gaussian"`` (weighted least squares) or ``"poisson"`` (photon counts; needs the
+    capture's Poisson ``scale``)."""
+    weighting: str = "noise"
+    """``"noise"``: residuals divided by the noise std (maximum likelihood; every bounce counts
+    in proportion to its signal-to-noise ratio, and a noise-free capture falls back on
+    ``sigma_floor_rel``). ``"relative"``: divided by sqrt(sigma^2 + (rel_weight * |y|)^2),
+    which makes weak bounces count like strong ones. ``"none"``: raw residuals."""
+    sigma: float | None = None
+    """Noise std in STIR units; None: from the capture's noise attributes, else estimated from
+    the bins where the model deposits no light."""
+    sigma_floor_rel: float = 1e-9
+    """Lower bound on sigma, relative to the data's peak (noise-free twins)."""
+    rel_weight: float = 1e-2
+    """Relative error level of ``weighting="relative"``."""
+    tikhonov: float = 0.0
+    """lambda of the Tikhonov term lambda ||x - x_ref||^2 on the scaled unknowns (>= 0)."""
+    tikhonov_reference: str = "zero"
+    """``"zero"`` (lambda ||Theta||^2, scaled) or ``"initial"`` (shrink toward the initial guess)."""
+
+    def validate(self) -> "CostSettings":
+        _choice("cost", self.cost, _COSTS)
+        _choice("likelihood", self.likelihood, _LIKELIHOODS)
+        _choice("weighting", self.weighting, _WEIGHTINGS)
+        _choice("tikhonov_reference", self.tikhonov_reference, ("zero", "initial"))
+        if self.sigma is not None:
+            _positive("sigma", self.sigma)
+        _positive("sigma_floor_rel", self.sigma_floor_rel)
+        _positive("rel_weight", self.rel_weight)
+        _positive("tikhonov", self.tikhonov, allow_zero=True)
+        if self.cost == "pem" and self.likelihood == "poisson":
+            raise ModelError("cost='pem' models Gaussian AR(1) noise; it cannot be combined with "
+                             "likelihood='poisson'. Use cost='oem' for photon counts.")
+        return self
+
+
+@dataclass
+class ConstraintSettings:
+    """Hard physical constraints (NLP constraints, never penalties)."""
+
+    energy: bool = True
+    """Per-patch BRDF energy: albedo + specular <= 1 for Phong patches (Lambertian: the bound
+    albedo <= 1)."""
+    stability: bool = True
+    """Transport stability: every flux-transfer column sum sum_r rho_r F_{k->r} <= 1 - margin."""
+    stability_margin: float = 1e-6
+    """Margin below 1 of the stability constraint."""
+    hidden_eps: float = 0.02
+    """Half-width (metres) of the box and of the distance constraints | |p_h - z_v| - D_hv | <= eps
+    that keep hidden positions near the geometry stage's estimate."""
+    distance_constraints: bool = True
+    """Also constrain hidden-to-visible distances (not only the box)."""
+
+    def validate(self) -> "ConstraintSettings":
+        _positive("stability_margin", self.stability_margin, allow_zero=True)
+        _positive("hidden_eps", self.hidden_eps)
+        return self
+
+
+@dataclass
+class IpoptSettings:
+    """IPOPT solve."""
+
+    hessian: str = "exact"
+    """``"exact"`` (CasADi AD), ``"gauss-newton"`` (J^T J plus exact constraint curvature) or
+    ``"limited-memory"`` (L-BFGS, for comparison)."""
+    tol: float = 1e-10
+    """IPOPT ``tol``."""
+    max_iter: int = 200
+    """IPOPT ``max_iter``."""
+    print_level: int = 0
+    """IPOPT ``print_level`` (0: quiet)."""
+    raise_on_failure: bool = True
+    """Raise ``SolverError`` when IPOPT does not converge (else return a result with
+    ``success=False`` that every printer marks FAILED)."""
+    extra: dict = field(default_factory=dict)
+    """More IPOPT options, passed verbatim (``{"mu_strategy": "adaptive"}``)."""
+
+    def validate(self) -> "IpoptSettings":
+        _choice("hessian", self.hessian, _HESSIANS)
+        _positive("tol", self.tol)
+        if not isinstance(self.max_iter, int) or self.max_iter < 1:
+            raise ModelError(f"max_iter must be an integer >= 1; got {self.max_iter!r}.")
+        return self
+
+
+@dataclass
+class LMSettings:
+    """Levenberg-Marquardt (scipy ``least_squares``)."""
+
+    method: str = "lm"
+    """``"lm"`` (MINPACK Levenberg-Marquardt, unbounded: bounds/constraints are checked after
+    and a violation fails the solve) or ``"trf"`` (bounded trust region)."""
+    jacobian: str = "ad"
+    """``"ad"``: the CasADi Jacobian. ``"fd"``: scipy finite differences (the baseline)."""
+    xtol: float = 1e-12
+    ftol: float = 1e-12
+    gtol: float = 1e-12
+    max_nfev: int | None = None
+    raise_on_failure: bool = True
+
+    def validate(self) -> "LMSettings":
+        _choice("method", self.method, _LM_METHODS)
+        _choice("jacobian", self.jacobian, _JACOBIANS)
+        for n in ("xtol", "ftol", "gtol"):
+            _positive(n, getattr(self, n))
+        return self
+
+
+@dataclass
+class UncertaintySettings:
+    """Fisher-information uncertainty and identifiability flags."""
+
+    compute: bool = True
+    """Compute standard deviations and correlations at the optimum."""
+    max_rel_std: float = 0.5
+    """A BRDF parameter whose std exceeds this fraction of its allowed range (albedo: of 1) is
+    flagged unidentifiable."""
+    max_position_std: float | None = None
+    """A position std (metres) above this is flagged; None: the hidden eps."""
+    null_tol: float = 1e-10
+    """Eigenvalues of the (scaled) Fisher matrix below null_tol x the largest are its null space."""
+
+    def validate(self) -> "UncertaintySettings":
+        _positive("max_rel_std", self.max_rel_std)
+        _positive("null_tol", self.null_tol)
+        return self
+
+
+@dataclass
+class EstimateSettings:
+    """All settings of ``estimate_reflectance``."""
+
+    solver: str = "ipopt"
+    """``"ipopt"`` or ``"lm"``."""
+    bounces: int | None = None
+    """Bounce order K of the model; None: 3 with hidden patches, else 2."""
+    estimate_hidden_geometry: bool = True
+    """Solve hidden positions jointly with the BRDF parameters (else fix them)."""
+    cost: CostSettings = field(default_factory=CostSettings)
+    constraints: ConstraintSettings = field(default_factory=ConstraintSettings)
+    ipopt: IpoptSettings = field(default_factory=IpoptSettings)
+    lm: LMSettings = field(default_factory=LMSettings)
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
+
+    def validate(self) -> "EstimateSettings":
+        _choice("solver", self.solver, ("ipopt", "lm"))
+        if self.bounces is not None and (not isinstance(self.bounces, int) or self.bounces < 1):
+            raise ModelError(f"bounces must be None or an integer >= 1; got {self.bounces!r}.")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if hasattr(v, "validate"):
+                v.validate()
+        return self
