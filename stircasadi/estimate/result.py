@@ -136,6 +136,7 @@ class Estimate:
         """
         from ..geometry.result import _jsonable
 
+        geometry = geometry if geometry is not None else self.extra.get("geometry_estimate")
         base = geometry.to_json_dict() if geometry is not None else {"patches": []}
         by_id = {int(p["id"]): p for p in base.get("patches", [])}
         out_patches = []
@@ -168,6 +169,7 @@ class Estimate:
         stages["reflectance"] = {"status": self.status, "success": self.success, "solver": self.solver,
                                  "iterations": self.iterations,
                                  "wall_time_s": float(sum(self.timings.values())),
-                                 "cost": self.cost, "flags": self.flags, **self.extra}
+                                 "cost": self.cost, "flags": self.flags,
+                                 **{k: v for k, v in self.extra.items() if k != "geometry_estimate"}}
         base["success"] = bool(base.get("success", True)) and self.success
         return _jsonable(base)

@@ -157,7 +157,8 @@ class UncertaintySettings:
     max_position_std: float | None = None
     """A position std (metres) above this is flagged; None: the hidden eps."""
     null_tol: float = 1e-10
-    """Eigenvalues of the (scaled) Fisher matrix below null_tol x the largest are its null space."""
+    """Eigenvalues of the correlation-normalised Fisher matrix D^-1/2 F D^-1/2 (diagonal 1) below
+    null_tol span its null space (scale-free: strong and weak parameters are judged alike)."""
 
     def validate(self) -> "UncertaintySettings":
         _positive("max_rel_std", self.max_rel_std)

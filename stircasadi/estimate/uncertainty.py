@@ -58,11 +58,17 @@ def fisher_uncertainty(nlp, x) -> dict:
             H = H / max(s2, 1e-300)
             sigma_used = nlp.sigma * np.sqrt(s2)
     Hs = 0.5 * (H + H.T)
-    ev, V = np.linalg.eigh(Hs)
-    top = max(float(ev.max()), 1e-300) if len(ev) else 1.0
-    null = ev <= nlp.settings.uncertainty.null_tol * top
+    # eigen-analysis of the correlation-normalised information (scale-free): D^-1/2 H D^-1/2
+    dg = np.sqrt(np.clip(np.diag(Hs), 0.0, None))
+    no_info = dg <= 1e-300
+    dsafe = np.where(no_info, 1.0, dg)
+    Hn = Hs / np.outer(dsafe, dsafe)
+    Hn[no_info, :] = 0.0
+    Hn[:, no_info] = 0.0
+    ev, V = np.linalg.eigh(Hn)
+    null = ev <= us.null_tol
     inv_ev = np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))
-    Hp = (V * inv_ev) @ V.T
+    Hp = ((V * inv_ev) @ V.T) / np.outer(dsafe, dsafe)
     cov = Hp if meat is None else Hp @ meat @ Hp
     var = np.clip(np.diag(cov), 0.0, None)
     in_null = (np.abs(V[:, null]) ** 2).sum(axis=1) > 1e-6 if null.any() else np.zeros(n, bool)

@@ -1,0 +1,102 @@
+"""The symbolic model equals the numeric forward model (1e-9 relative) and guards its declaration."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from problems import glossy_patch, hidden_corner, lambertian_walls, three_patch
+from stircasadi.brdf import Lambertian, Mirror
+from stircasadi.errors import ModelError
+from stircasadi.model import TransientModel, irf_from_samples
+from stircasadi.scene import Patch, Scene
+from stircasadi.sensor import GaussianIRF, IdealIRF
+from stircasadi.transport import simulate
+
+from _reflectance_helpers import hidden_model
+
+
+def _truth_values(sc):
+    t = sc.truth_dict()
+    return {"albedo": t["albedo"], "specular": t.get("specular", np.zeros(sc.n_patches)),
+            "exponent": t.get("exponent", np.zeros(sc.n_patches)), "position": sc.positions}
+
+
+@pytest.mark.parametrize("mod,kw", [(three_patch, {}), (hidden_corner, {}), (glossy_patch, {}),
+                                    (lambertian_walls, {"n_patches": 10})])
+def test_symbolic_equals_numeric_forward(mod, kw):
+    sc, gr, se = mod.build_scene(**kw), mod.build_grid(), mod.build_sensor()
+    tr = simulate(sc, gr, se)
+    m = TransientModel.from_scene(sc, gr, se.irf)
+    m.set_unknown("albedo", "all", initial=0.5)
+    if sc.is_glossy:
+        m.set_unknown("specular", "glossy", initial=0.1).set_unknown("exponent", "glossy", initial=3.0)
+    h = np.flatnonzero(sc.hidden)
+    if len(h):  # symbolic (erf) kernels for the paths through hidden patches
+        m.set_unknown("position", h, lower=sc.positions[h] - 0.02, upper=sc.positions[h] + 0.02)
+    m.setup()
+    y = m.simulate(m.x_of(_truth_values(sc)))
+    rel = np.abs(y - tr.stir).max() / np.abs(tr.stir).max()
+    assert rel < 1e-9, rel
+    # and a wrong parameter value does not match (the comparison can fail)
+    assert np.abs(m.simulate() - tr.stir).max() / np.abs(tr.stir).max() > 1e-3
+
+
+def test_legs_excluded_and_distance_parameterisation_match():
+    sc, gr, se = hidden_corner.build_scene(), hidden_corner.build_grid(), hidden_corner.build_sensor()
+    tr = simulate(sc, gr, se)
+    m, h, true_d = hidden_model(sc, gr, se.irf)
+    m.setup()
+    th = m.theta(m.x_of({"albedo": sc.albedos, "distance": np.vstack([np.zeros((2, 2)), true_d])}))
+    assert np.allclose(th["position"][h], sc.positions[h], atol=1e-12)
+    y = m.simulate(m.x_of({"albedo": sc.albedos}))
+    assert np.abs(y - tr.stir).max() / tr.stir.max() < 1e-9
+    from stircasadi.timegrid import TimeGrid
+    sc3, gr3, se3 = three_patch.build_scene(), TimeGrid(-0.3, 0.005, 300), three_patch.build_sensor()
+    tr3 = simulate(sc3, gr3, se3, legs_included=False)
+    m3 = TransientModel.from_scene(sc3, gr3, se3.irf, legs_included=False).set_unknown("albedo").setup()
+    y3 = m3.simulate(m3.x_of({"albedo": sc3.albedos}))
+    assert np.abs(y3 - tr3.stir).max() / tr3.stir.max() < 1e-9
+
+
+def test_ideal_irf_fixed_geometry_matches():
+    sc, gr = three_patch.build_scene(), three_patch.build_grid()
+    from stircasadi.sensor import Sensor
+    tr = simulate(sc, gr, Sensor())
+    m = TransientModel.from_scene(sc, gr, IdealIRF()).set_unknown("albedo").setup()
+    y = m.simulate(m.x_of({"albedo": sc.albedos}))
+    assert np.abs(y - tr.stir).max() / tr.stir.max() < 1e-9
+
+
+def test_irf_from_samples_recovers_gaussian():
+    g = GaussianIRF(0.04)
+    from stircasadi.sensor import Sensor
+    from stircasadi.timegrid import TimeGrid
+    s = Sensor(irf=g).irf_samples(TimeGrid(0.0, 0.005, 10))
+    fit = irf_from_samples(s, 0.005)
+    assert isinstance(fit, GaussianIRF)
+    assert abs(fit.fwhm - 0.04) / 0.04 < 0.01
+
+
+def test_declaration_errors_name_the_fix():
+    sc, gr = three_patch.build_scene(), three_patch.build_grid()
+    irf = GaussianIRF(0.03)
+    with pytest.raises(ModelError, match="No unknowns declared"):
+        TransientModel.from_scene(sc, gr, irf).setup()
+    with pytest.raises(ModelError, match="outside its bounds"):
+        TransientModel.from_scene(sc, gr, irf).set_unknown("albedo", initial=1.5).setup()
+    with pytest.raises(ModelError, match="Unknown parameter"):
+        TransientModel.from_scene(sc, gr, irf).set_unknown("roughness")
+    with pytest.raises(ModelError, match="Phong parameter"):
+        TransientModel.from_scene(sc, gr, irf).set_unknown("specular", [0])
+    m = TransientModel.from_scene(sc, gr, irf).set_unknown("albedo").setup()
+    with pytest.raises(ModelError, match="locked"):
+        m.set_unknown("albedo")
+    with pytest.raises(ModelError, match="GaussianIRF"):
+        (TransientModel.from_scene(sc, gr, IdealIRF())
+         .set_unknown("position", [0], lower=sc.positions[0] - 0.01, upper=sc.positions[0] + 0.01).setup())
+    with pytest.raises(ModelError, match="finite lower/upper"):
+        TransientModel.from_scene(sc, gr, irf).set_unknown("position", [0]).setup()
+    mir = Scene([Patch((0, 0, 1), (0, 0, -1), 0.01, Lambertian(0.5)),
+                 Patch((0.3, 0, 1.2), (0, 0, -1), 0.01, Mirror(0.9))])
+    with pytest.raises(ModelError, match="mirror"):
+        TransientModel.from_scene(mir, gr, irf)
