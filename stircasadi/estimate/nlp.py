@@ -221,7 +221,18 @@ class ReflectanceNLP:
             v = max(v, float(np.max(self.lbg - gv, initial=0.0)), float(np.max(gv - self.ubg, initial=0.0)))
         return v
 
-    def hessian_function(self, kind: str):
+    def curvature_scale(self, x) -> np.ndarray:
+        """d_j = max(sqrt(F_jj), 1): Gauss-Newton information of each unknown at x (see solve_ipopt)."""
+        if self.poisson:
+            JM = np.asarray(ca.densify(self.f_JM(x)))
+            mu = np.maximum(np.asarray(ca.Function("mu", [self.xx], [self.mu])(x)).ravel(), 1e-300)
+            s = float(self.noise["scale"])
+            Fd = (s ** 2) * np.sum(JM ** 2 / mu[:, None], axis=0)
+        else:
+            Fd = np.sum(self.jacobian(x) ** 2, axis=0)
+        return np.maximum(np.sqrt(np.maximum(Fd, 0.0)), 1.0)
+
+    def hessian_function(self, kind: str, obj_scale: float = 1.0):
         """CasADi hess_lag for IPOPT: Gauss-Newton J^T J of the data term + exact rest."""
         lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", self.g.shape[0])
@@ -233,8 +244,8 @@ class ReflectanceNLP:
         else:
             J = ca.jacobian(self.r, xx)
             Hd = ca.mtimes(J.T, J)
-        rest = lam_f * (self.f_extra + self.f_reg) + ca.dot(lam_g, self.g)
-        H = lam_f * Hd + ca.hessian(rest, xx)[0]
+        rest = lam_f * obj_scale * (self.f_extra + self.f_reg) + ca.dot(lam_g, self.g)
+        H = lam_f * obj_scale * Hd + ca.hessian(rest, xx)[0]
         return ca.Function("hess_gn", [xx, p, lam_f, lam_g], [ca.triu(H)])
 
 
@@ -249,11 +260,29 @@ def solve_ipopt(nlp: ReflectanceNLP, x0=None, warm: dict | None = None):
 
     st = nlp.settings.ipopt
     opts = {"ipopt.print_level": st.print_level, "print_time": False, "ipopt.tol": st.tol,
-            "ipopt.max_iter": st.max_iter, "ipopt.sb": "yes"}
+            "ipopt.max_iter": st.max_iter, "ipopt.sb": "yes", "ipopt.honor_original_bounds": "yes",
+            "ipopt.acceptable_tol": st.acceptable_tol, "ipopt.acceptable_iter": 10}
+    x_init = np.asarray(warm["x"] if warm else (nlp.x0 if x0 is None else x0), float)
+    x_init = np.clip(x_init, nlp.lbx, nlp.ubx)
+    t0 = time.perf_counter()
+    # Curvature scaling: IPOPT works on xi = d * x with d_j = max(sqrt(F_jj(x0)), 1), F the
+    # Gauss-Newton information, so a first-bounce albedo (F ~ 1e18) and a 1e-6 third-bounce one
+    # (F ~ 1e6) look alike to its tolerances: tol is then "a fraction of one standard deviation".
+    d = nlp.curvature_scale(x_init) if st.curvature_scaling else np.ones(nlp.n_x)
+    opts["ipopt.nlp_scaling_method"] = "none" if st.curvature_scaling else "gradient-based"
+    xi = ca.MX.sym("xi", nlp.n_x)
+    fg = ca.Function("fg", [nlp.xx], [nlp.f, nlp.g])
+    f_xi, g_xi = fg(xi / ca.DM(d))
     if st.hessian == "limited-memory":
         opts["ipopt.hessian_approximation"] = "limited-memory"
     elif st.hessian == "gauss-newton":
-        opts["hess_lag"] = nlp.hessian_function("gauss-newton")
+        hx = nlp.hessian_function("gauss-newton")
+        lam_f = ca.MX.sym("lam_f")
+        lam_g = ca.MX.sym("lam_g", nlp.g.shape[0])
+        p = ca.MX.sym("p", 0)
+        Dinv = ca.diag(ca.DM(1.0 / d))
+        Hxi = ca.mtimes(Dinv, ca.mtimes(ca.triu2symm(hx(xi / ca.DM(d), p, lam_f, lam_g)), Dinv))
+        opts["hess_lag"] = ca.Function("hess_xi", [xi, p, lam_f, lam_g], [ca.triu(Hxi)])
     if warm:
         opts["ipopt.warm_start_init_point"] = "yes"
         opts["ipopt.mu_init"] = 1e-6
@@ -261,14 +290,11 @@ def solve_ipopt(nlp: ReflectanceNLP, x0=None, warm: dict | None = None):
         opts["ipopt.warm_start_mult_bound_push"] = 1e-9
     for k, v in st.extra.items():
         opts[k if k.startswith("ipopt.") else f"ipopt.{k}"] = v
-    t0 = time.perf_counter()
-    solver = ca.nlpsol("reflectance", "ipopt", {"x": nlp.xx, "f": nlp.f, "g": nlp.g}, opts)
+    solver = ca.nlpsol("reflectance", "ipopt", {"x": xi, "f": f_xi, "g": g_xi}, opts)
     t_build = time.perf_counter() - t0
-    x_init = np.asarray(warm["x"] if warm else (nlp.x0 if x0 is None else x0), float)
-    x_init = np.clip(x_init, nlp.lbx, nlp.ubx)
-    args = dict(x0=x_init, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    args = dict(x0=x_init * d, lbx=nlp.lbx * d, ubx=nlp.ubx * d, lbg=nlp.lbg, ubg=nlp.ubg)
     if warm:
-        args["lam_x0"] = warm.get("lam_x", 0)
+        args["lam_x0"] = np.asarray(warm.get("lam_x", np.zeros(nlp.n_x))) / d
         args["lam_g0"] = warm.get("lam_g", 0)
     t1 = time.perf_counter()
     sol = solver(**args)
@@ -276,12 +302,13 @@ def solve_ipopt(nlp: ReflectanceNLP, x0=None, warm: dict | None = None):
     stats = solver.stats()
     status = stats.get("return_status", "unknown")
     success = bool(stats.get("success", False)) and status in _OK_STATUS
-    x = np.asarray(sol["x"]).ravel()
+    x = np.asarray(sol["x"]).ravel() / d
     info = {"status": status, "iterations": int(stats.get("iter_count", -1)), "success": success,
             "hessian": st.hessian, "build_time_s": t_build, "solve_time_s": t_solve,
-            "cost": float(sol["f"]), "constraint_violation": nlp.constraint_violation(x)}
+            "cost": float(sol["f"]), "curvature_scale_range": [float(d.min()), float(d.max())],
+            "constraint_violation": nlp.constraint_violation(x)}
     est = Estimate.from_solution(nlp, x, solver="ipopt", info=info,
-                                 warm_start={"x": x, "lam_x": np.asarray(sol["lam_x"]).ravel(),
+                                 warm_start={"x": x, "lam_x": np.asarray(sol["lam_x"]).ravel() * d,
                                              "lam_g": np.asarray(sol["lam_g"]).ravel()})
     if not success and st.raise_on_failure:
         raise SolverError(f"IPOPT did not converge: return_status '{status}' after "

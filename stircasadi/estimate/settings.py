@@ -47,8 +47,10 @@ class CostSettings:
     sigma: float | None = None
     """Noise std in STIR units; None: from the capture's noise attributes, else estimated from
     the bins where the model deposits no light."""
-    sigma_floor_rel: float = 1e-9
-    """Lower bound on sigma, relative to the data's peak (noise-free twins)."""
+    sigma_floor_rel: float = 1e-8
+    """Lower bound on sigma, relative to the data's peak: the resolution double precision leaves
+    to residuals of sums of ~1e3 path terms (a smaller floor leaves IPOPT's dual infeasibility
+    stuck at round-off). Noise-free twins use it."""
     rel_weight: float = 1e-2
     """Relative error level of ``weighting="relative"``."""
     tikhonov: float = 0.0
@@ -102,10 +104,20 @@ class IpoptSettings:
     hessian: str = "exact"
     """``"exact"`` (CasADi AD), ``"gauss-newton"`` (J^T J plus exact constraint curvature) or
     ``"limited-memory"`` (L-BFGS, for comparison)."""
-    tol: float = 1e-10
-    """IPOPT ``tol``."""
+    tol: float = 1e-8
+    """IPOPT ``tol``; with ``curvature_scaling`` it is in units of the unknowns' standard
+    deviations (1e-8: every unknown converged to 1e-8 sigma)."""
+    curvature_scaling: bool = True
+    """Let IPOPT work on xi_j = d_j x_j, d_j = max(sqrt(F_jj(x0)), 1) (F: Gauss-Newton
+    information), so strong and weak unknowns converge alike (the user-facing scaled x stays
+    within 0.1-100); False: IPOPT's own gradient-based objective scaling."""
     max_iter: int = 200
     """IPOPT ``max_iter``."""
+    acceptable_tol: float = 1e-5
+    """IPOPT ``acceptable_tol`` (with ``acceptable_iter`` = 10): when strong and weak unknowns
+    differ in curvature by ~1e15 (a first bounce vs a 1e-6 third bounce), round-off floors the
+    dual infeasibility of the strong ones; the solve then ends 'Solved_To_Acceptable_Level',
+    reported as such."""
     print_level: int = 0
     """IPOPT ``print_level`` (0: quiet)."""
     raise_on_failure: bool = True
