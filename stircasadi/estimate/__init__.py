@@ -18,11 +18,12 @@ __all__ = ["ReflectanceNLP", "solve_ipopt", "solve_lm", "Estimate", "fisher_unce
            "UncertaintySettings", "estimate_reflectance", "report_table"]
 
 
-def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertian", settings=None):
+def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertian", settings=None,
+                         **kw):
     """Joint BRDF (+ hidden geometry) estimate from a Capture; see ``pipeline.estimate_reflectance``."""
     from .pipeline import estimate_reflectance as _impl
 
-    return _impl(capture, geometry_estimate, brdf=brdf, settings=settings)
+    return _impl(capture, geometry_estimate, brdf=brdf, settings=settings, **kw)
 
 
 def report_table(estimate, truth=None, timings=None) -> str:

@@ -32,13 +32,25 @@ def solve_lm(nlp: ReflectanceNLP, x0=None):
     sq = np.sqrt(2.0 * lam)
     xref = nlp.x_ref
 
+    gl = np.asarray(nlp.gloss_idx, int)
+    sg = np.sqrt(2.0 * nlp.settings.cost.gloss_prior) if len(gl) else 0.0
+    x0g = nlp.model.x0[gl] if len(gl) else np.zeros(0)
+
     def fun(x):
-        r = nlp.residuals(x)
-        return np.concatenate([r, sq * (x - xref)]) if lam > 0 else r
+        parts = [nlp.residuals(x)]
+        if lam > 0:
+            parts.append(sq * (x - xref))
+        if sg > 0:
+            parts.append(sg * (x[gl] - x0g))
+        return np.concatenate(parts)
 
     def jac(x):
-        J = nlp.jacobian(x)
-        return np.vstack([J, sq * np.eye(len(x))]) if lam > 0 else J
+        parts = [nlp.jacobian(x)]
+        if lam > 0:
+            parts.append(sq * np.eye(len(x)))
+        if sg > 0:
+            parts.append(sg * np.eye(len(x))[gl])
+        return np.vstack(parts)
 
     x_init = np.clip(np.asarray(nlp.x0 if x0 is None else x0, float), nlp.lbx, nlp.ubx)
     kw = dict(xtol=st.xtol, ftol=st.ftol, gtol=st.gtol, max_nfev=st.max_nfev, x_scale=1.0)

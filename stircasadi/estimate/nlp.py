@@ -115,6 +115,10 @@ class ReflectanceNLP:
         lam = cs.tikhonov
         self.x_ref = self.x0.copy() if cs.tikhonov_reference == "initial" else np.zeros(self.n_x)
         self.f_reg = lam * ca.sumsqr(x - ca.DM(self.x_ref[:n])) if lam > 0 else ca.MX(0)
+        gl = [j for j, (nm, _, _) in enumerate(model.blocks) if nm in ("specular", "exponent")]
+        if cs.gloss_prior > 0 and gl:
+            self.f_reg = self.f_reg + cs.gloss_prior * ca.sumsqr(x[gl] - ca.DM(model.x0[gl]))
+        self.gloss_idx = gl
         self.f = self.f_data + self.f_extra + self.f_reg
         self._build_constraints(hidden_distances)
         self._functions()

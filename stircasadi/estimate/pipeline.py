@@ -36,7 +36,8 @@ from .settings import EstimateSettings
 
 
 def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertian",
-                         settings: EstimateSettings | None = None, areas=None) -> Estimate:
+                         settings: EstimateSettings | None = None, areas=None,
+                         glossy_ids=None) -> Estimate:
     """Estimate BRDF parameters (and refine hidden geometry) from ``capture``.
 
     Parameters
@@ -46,6 +47,10 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     brdf : ``"lambertian"`` or ``"phong"``.
     settings : EstimateSettings.
     areas : optional (M,) patch areas in the geometry estimate's order.
+    glossy_ids : with ``brdf="phong"``, the patch ids given a Phong lobe (default: every visible
+        patch). A lobe is identifiable only where the data sample it near its mirror direction;
+        fitting one to every patch of a small scene is ill-posed (IPOPT may then fail, and the
+        Fisher flags say which lobes the data do not see).
     """
     settings = (settings or EstimateSettings()).validate()
     if brdf not in ("lambertian", "phong"):
@@ -101,8 +106,13 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
         if c.size:
             alb0[k] = np.pi * a[k] * float(np.sum(y[r, c[0]])) / phi
     alb0 = np.clip(alb0, 0.05, 0.95)
-    brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if (brdf == "phong" and vis[k]) else Lambertian(alb0[k])
-             for k in range(M)]
+    if brdf == "phong":
+        gl = vis.copy() if glossy_ids is None else np.isin(ids, np.asarray(glossy_ids, int))
+        if glossy_ids is not None and not gl.any():
+            raise ModelError(f"glossy_ids {list(glossy_ids)} match no patch id ({ids.tolist()[:20]}).")
+    else:
+        gl = np.zeros(M, bool)
+    brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if gl[k] else Lambertian(alb0[k]) for k in range(M)]
     K = settings.bounces or (3 if (~vis).any() else 2)
     model = TransientModel(pos, nor, a, capture.grid, irf, ill, obs, brdfs, source=src, camera=cam,
                            phi=phi, legs_included=capture.legs_included, bounces=K,

@@ -55,6 +55,12 @@ class CostSettings:
     """Relative error level of ``weighting="relative"``."""
     tikhonov: float = 0.0
     """lambda of the Tikhonov term lambda ||x - x_ref||^2 on the scaled unknowns (>= 0)."""
+    gloss_prior: float = 1.0
+    """Weight w of a weak prior w ||x_g - x_g0||^2 on the scaled Phong unknowns (specular: scale 1,
+    exponent: scale 10) toward their initial values. It keeps the NLP well posed where the data
+    do not see a patch's lobe (specular -> 0 leaves the exponent free); in chi^2 units it is
+    negligible against any lobe the data do see. Identifiability flags ignore it (data-only
+    Fisher information). 0 disables it."""
     tikhonov_reference: str = "zero"
     """``"zero"`` (lambda ||Theta||^2, scaled) or ``"initial"`` (shrink toward the initial guess)."""
 
@@ -68,6 +74,7 @@ class CostSettings:
         _positive("sigma_floor_rel", self.sigma_floor_rel)
         _positive("rel_weight", self.rel_weight)
         _positive("tikhonov", self.tikhonov, allow_zero=True)
+        _positive("gloss_prior", self.gloss_prior, allow_zero=True)
         if self.cost == "pem" and self.likelihood == "poisson":
             raise ModelError("cost='pem' models Gaussian AR(1) noise; it cannot be combined with "
                              "likelihood='poisson'. Use cost='oem' for photon counts.")

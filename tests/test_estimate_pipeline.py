@@ -1,0 +1,100 @@
+"""estimate_reflectance on a Capture + GeometryEstimate: JSON, report table, initial guesses."""
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from problems import glossy_patch, hidden_corner, lambertian_walls
+from stircasadi.errors import IdentifiabilityWarning, ModelError
+from stircasadi.estimate import EstimateSettings, estimate_reflectance, report_table
+from stircasadi.geometry import GeometryEstimate
+
+from _reflectance_helpers import capture_of
+
+
+def _geometry(sc, hidden_shift=None):
+    """A GeometryEstimate as the geometry stage would give it: hidden patches moved along their
+    distances to the two wall patches by ``hidden_shift`` (metres), angle kept."""
+    pos = sc.positions.copy()
+    vis = ~sc.hidden
+    if hidden_shift is not None:
+        a1, a2 = pos[np.flatnonzero(vis)[:2]]
+        e = (a2 - a1) / np.linalg.norm(a2 - a1)
+        L = np.linalg.norm(a2 - a1)
+        for k, dd in zip(np.flatnonzero(sc.hidden), hidden_shift):
+            v = pos[k] - a1
+            u = v - np.dot(v, e) * e
+            u /= np.linalg.norm(u)
+            d1 = np.linalg.norm(pos[k] - a1) + dd[0]
+            d2 = np.linalg.norm(pos[k] - a2) + dd[1]
+            x = (d1 ** 2 - d2 ** 2 + L ** 2) / (2 * L)
+            pos[k] = a1 + x * e + np.sqrt(d1 ** 2 - x ** 2) * u
+    return GeometryEstimate(ids=np.arange(sc.n_patches), positions=pos, visible=vis,
+                            normals=np.where(vis[:, None], sc.normals, np.nan),
+                            source_xyz=np.zeros(3), camera_xyz=np.zeros(3))
+
+
+def test_hidden_corner_pipeline_json_and_table():
+    sc, gr, se, tr, cap = capture_of(hidden_corner, seed=3)
+    sc_n = sc.normals.copy()
+    g = _geometry(sc, hidden_shift=[(0.01, -0.008), (-0.009, 0.01)])
+    g.normals[~g.visible] = sc_n[~g.visible]  # the geometry stage's normals (here: true)
+    e = estimate_reflectance(cap, g)
+    assert e.success and e.extra["areas_source"] == "capture truth"
+    h = np.flatnonzero(sc.hidden)
+    assert np.linalg.norm(e.values["position"][h] - sc.positions[h], axis=1).max() < 1e-3
+    assert np.all(np.abs(e.values["albedo"] - sc.albedos) < 4 * e.std["albedo"])
+    js = e.to_json_dict()
+    json.dumps(js)
+    p_h = js["patches"][h[0]]
+    assert p_h["id"] == h[0] and not p_h["visible"] and len(p_h["position_std"]) == 3
+    assert p_h["albedo_std"] > 0 and "specular" not in p_h
+    st = js["stages"]["reflectance"]
+    assert st["success"] and st["iterations"] > 0 and st["wall_time_s"] > 0
+    tab = report_table(e, cap.truth)
+    assert "albedo" in tab and "H2" in tab and "time:" in tab and tab.startswith("Reflectance / joint NLP: OK")
+
+
+def test_hidden_normals_missing_face_the_wall_and_still_solve():
+    sc, gr, se, tr, cap = capture_of(hidden_corner, seed=3)
+    g = _geometry(sc, hidden_shift=[(0.004, -0.004), (-0.004, 0.004)])
+    e = estimate_reflectance(cap, g)  # hidden normals NaN: pointed at the wall's centroid
+    assert e.success
+    assert np.all(np.isfinite(e.normals))
+
+
+def test_lambertian_walls_pipeline_initial_guess_and_lm():
+    sc, gr, se, tr, cap = capture_of(lambertian_walls, seed=4, n_patches=10)
+    g = _geometry(sc)
+    st = EstimateSettings(solver="lm")
+    e = estimate_reflectance(cap, g, settings=st)
+    assert e.success and e.solver == "lm-ad"
+    assert np.all(np.abs(e.values["albedo"] - sc.albedos) < 4 * e.std["albedo"])
+
+
+def test_phong_pipeline_reports_specular_for_glossy_patches():
+    sc, gr, se, tr, cap = capture_of(glossy_patch, seed=4, sensor=glossy_patch.build_sensor(1e-4))
+    e = estimate_reflectance(cap, _geometry(sc), brdf="phong", glossy_ids=[0])
+    assert e.success
+    js = e.to_json_dict()
+    assert "specular" in js["patches"][0] and "exponent_std" in js["patches"][0]
+    assert all("specular" not in p for p in js["patches"][1:])
+    assert abs(e.values["specular"][0] - 0.5) < 4 * e.std["specular"][0]
+
+
+def test_missing_areas_warn_and_bad_inputs_raise():
+    sc, gr, se, tr, cap = capture_of(lambertian_walls, seed=4, n_patches=10)
+    cap.truth = None
+    with pytest.warns(IdentifiabilityWarning, match="areas"):
+        e = estimate_reflectance(cap, _geometry(sc))
+    assert e.extra["areas_source"].startswith("default")
+    with pytest.raises(ModelError, match="brdf must be"):
+        estimate_reflectance(cap, _geometry(sc), brdf="ward")
+    cap.irf = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        with pytest.raises(ModelError, match="impulse response"):
+            estimate_reflectance(cap, _geometry(sc))
