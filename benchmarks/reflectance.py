@@ -1,0 +1,230 @@
+"""Reflectance / joint-NLP benchmark: build and solve time and memory against patches and bins,
+IPOPT (exact AD Hessian) vs Levenberg-Marquardt with the CasADi Jacobian vs LM with finite
+differences, and what accuracy costs in time (bins, bounce order, solver tolerance).
+
+Usage::
+
+    python benchmarks/reflectance.py            # full sweep (a few minutes on 2 cores)
+    python benchmarks/reflectance.py --quick    # small sweep (CI)
+
+Prints tables and writes ``benchmarks/results/reflectance.json``. Each configuration runs in a
+fresh subprocess so that its peak resident memory (ru_maxrss, minus the interpreter's after
+imports) belongs to it alone.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def numeric_lm_fd(nlp, scene, grid, sensor, bounces):
+    """The baseline a MATLAB/scipy user gets: scipy LM with finite differences over the NUMERIC
+    forward model (``stircasadi.transport.simulate``, path sums), same residual weights and
+    support as the NLP. Returns (x, wall seconds, nfev)."""
+    from scipy.optimize import least_squares
+
+    from stircasadi.brdf import Lambertian
+    from stircasadi.scene import Patch, Scene
+    from stircasadi.transport import simulate
+
+    m = nlp.model
+
+    def resid(x):
+        th = m.theta(x)
+        pts = [Patch(tuple(th["position"][k]), p.normal, p.area, Lambertian(float(np.clip(th["albedo"][k], 0, 1))),
+                     p.hidden, p.name) for k, p in enumerate(scene.patches)]
+        sc = Scene(pts, source=scene.source, camera=scene.camera)
+        y = simulate(sc, grid, sensor, method="bounces", bounces=bounces, allow_truncation=True).stir
+        return nlp.w * (nlp.y - y.reshape(-1)[m.support])
+
+    t0 = time.perf_counter()
+    r = least_squares(resid, nlp.x0, jac="2-point", method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    return r.x, time.perf_counter() - t0, r.nfev
+
+
+def _walls_case(n_patches, n_bins, solvers, seed=1, q=None):
+    import casadi  # noqa: F401  (imports before the baseline)
+    from problems import lambertian_walls as lw
+    from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt, solve_lm
+    from stircasadi.model import TransientModel
+    from stircasadi.transport import simulate
+
+    sc, gr, se = lw.build_scene(n_patches), lw.build_grid(n_bins), lw.build_sensor(1e-2)
+    cap = se.capture(simulate(sc, gr, se), seed=seed)
+    base = _rss_mb()
+    t0 = time.perf_counter()
+    m = TransientModel.from_scene(sc, gr, se.irf).set_unknown("albedo", initial=0.5).setup()
+    nlp = ReflectanceNLP(m, cap.stir, EstimateSettings(), noise=cap.noise)
+    t_build = time.perf_counter() - t0
+    mem_build = _rss_mb() - base
+    out = {"n_patches": n_patches, "n_bins": n_bins, "n_paths": m.info.n_paths,
+           "n_residuals": m.info.n_support, "n_unknowns": m.n_x, "build_s": t_build,
+           "build_mem_mb": mem_build, "solvers": {}}
+    for name in solvers:
+        st = EstimateSettings()
+        st.ipopt.raise_on_failure = st.lm.raise_on_failure = False
+        if name == "lm-fd-numeric":
+            nlp.settings = st
+            x, wall, nfev = numeric_lm_fd(nlp, sc, gr, se, 2)
+            err = m.theta(x)["albedo"] - sc.albedos
+            out["solvers"][name] = {"wall_s": wall, "success": True, "iterations": nfev,
+                                    "rms_albedo_error": float(np.sqrt(np.mean(err ** 2)))}
+            continue
+        if name.startswith("lm"):
+            st.lm.jacobian = name.split("-")[1]
+            nlp.settings = st
+            t1 = time.perf_counter()
+            e = solve_lm(nlp)
+        else:
+            nlp.settings = st
+            t1 = time.perf_counter()
+            e = solve_ipopt(nlp)
+        wall = time.perf_counter() - t1
+        err = e.values["albedo"] - sc.albedos
+        out["solvers"][name] = {"wall_s": wall, "success": e.success, "iterations": e.iterations,
+                                "rms_albedo_error": float(np.sqrt(np.mean(err ** 2))),
+                                "max_abs_z": float(np.max(np.abs(err / e.std["albedo"])))}
+    out["peak_mem_mb"] = _rss_mb() - base
+    if q is not None:
+        q.put(out)
+    return out
+
+
+def _corner_case(n_bins=1024, bounces=3, tol=1e-8, noise=1e-7, seed=4, q=None, solver="ipopt"):
+    import casadi  # noqa: F401
+    from problems import hidden_corner as hc
+    from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt
+    from stircasadi.model import TransientModel
+    from stircasadi.sensor import GaussianNoise, Sensor
+    from stircasadi.timegrid import TimeGrid
+    from stircasadi.transport import simulate
+
+    sc = hc.build_scene()
+    gr = TimeGrid(0.0, 5.12 / n_bins, n_bins)
+    se = Sensor(irf=hc.build_sensor().irf, noise=GaussianNoise(relative=noise) if noise else None)
+    cap = se.capture(simulate(sc, gr, se, bounces=3), seed=seed)
+    t0 = time.perf_counter()
+    m = TransientModel.from_scene(sc, gr, se.irf, bounces=bounces).set_unknown("albedo", initial=0.5)
+    h = np.flatnonzero(sc.hidden)
+    true_d = np.array([[np.linalg.norm(sc.positions[k] - sc.positions[a]) for a in (0, 1)] for k in h])
+    off = np.array([[0.012, -0.009], [-0.011, 0.012]])
+    for i, k in enumerate(h):
+        m.set_hidden_distances(k, (0, 1), eps=0.03, initial=true_d[i] + off[i])
+    m.setup()
+    st = EstimateSettings()
+    st.ipopt.tol = tol
+    st.ipopt.raise_on_failure = False
+    nlp = ReflectanceNLP(m, cap.stir, st, noise=cap.noise)
+    t_build = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if solver == "ipopt":
+        e = solve_ipopt(nlp)
+        th, iters, status = e.values, e.iterations, e.status
+    elif solver in ("lm-ad", "lm-fd"):
+        from stircasadi.estimate import solve_lm
+        st.lm.jacobian = solver.split("-")[1]
+        st.lm.raise_on_failure = False
+        e = solve_lm(nlp)
+        th, iters, status = e.values, e.iterations, e.status
+    else:  # lm-fd-numeric
+        x, _, iters = numeric_lm_fd(nlp, sc, gr, se, bounces)
+        th, status = m.theta(x), "scipy lm"
+    wall = time.perf_counter() - t1
+    derr = np.abs(th["distance"][h] - true_d).max()
+    out = {"solver": solver, "n_bins": n_bins, "bounces": bounces, "tol": tol, "noise_rel": noise,
+           "build_s": t_build, "solve_s": wall, "iterations": iters, "status": status,
+           "max_distance_error_m": float(derr), "max_distance_error_bins": float(derr / gr.bin_width),
+           "max_hidden_albedo_error": float(np.abs(th["albedo"][h] - sc.albedos[h]).max())}
+    if q is not None:
+        q.put(out)
+    return out
+
+
+def _isolated(fn, **kw):
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=fn, kwargs={**kw, "q": q})
+    p.start()
+    out = q.get()
+    p.join()
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sweep for CI")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "reflectance.json"))
+    a = ap.parse_args(argv)
+    quick = a.quick
+    patches = [10, 20] if quick else [10, 30, 50, 100]
+    bins = [512, 1024] if quick else [512, 1024, 2048, 4096]
+    res = {"patches": [], "bins": [], "accuracy": []}
+
+    print("== Lambertian walls, 1 % noise: build and solve vs number of patches (1024 bins) ==")
+    print(f"{'patches':>8}{'paths':>8}{'resid':>9}{'build s':>9}{'mem MB':>8}"
+          f"{'ipopt s':>9}{'lm-ad s':>9}{'lm-fd s':>9}{'fdnum s':>9}{'fdnum/ip':>9}{'rms err':>10}{'fdnum err':>10}")
+    for n in patches:
+        solvers = ["ipopt", "lm-ad", "lm-fd"] + (["lm-fd-numeric"] if n <= (20 if quick else 50) else [])
+        r = _isolated(_walls_case, n_patches=n, n_bins=1024, solvers=solvers)
+        res["patches"].append(r)
+        s = r["solvers"]
+        fdn = s.get("lm-fd-numeric")
+        print(f"{n:>8}{r['n_paths']:>8}{r['n_residuals']:>9}{r['build_s']:>9.3f}{r['peak_mem_mb']:>8.0f}"
+              f"{s['ipopt']['wall_s']:>9.3f}{s['lm-ad']['wall_s']:>9.3f}{s['lm-fd']['wall_s']:>9.3f}"
+              + (f"{fdn['wall_s']:>9.2f}{fdn['wall_s'] / s['ipopt']['wall_s']:>9.0f}" if fdn else f"{'-':>9}{'-':>9}")
+              + f"{s['ipopt']['rms_albedo_error']:>10.2e}"
+              + (f"{fdn['rms_albedo_error']:>10.2e}" if fdn else f"{'-':>10}"))
+        bad = [k for k, v in s.items() if not v["success"]]
+        if bad:
+            print(f"{'':>8}FAILED: {bad}")
+
+    nb_p = 10 if quick else 30
+    print(f"\n== Lambertian walls ({nb_p} patches): build and solve vs number of bins ==")
+    print(f"{'bins':>8}{'resid':>9}{'build s':>9}{'mem MB':>8}{'ipopt s':>9}{'lm-ad s':>9}{'lm-fd s':>9}{'rms err':>10}")
+    for nb in bins:
+        r = _isolated(_walls_case, n_patches=nb_p, n_bins=nb, solvers=["ipopt", "lm-ad", "lm-fd"])
+        res["bins"].append(r)
+        s = r["solvers"]
+        print(f"{nb:>8}{r['n_residuals']:>9}{r['build_s']:>9.3f}{r['peak_mem_mb']:>8.0f}"
+              f"{s['ipopt']['wall_s']:>9.3f}{s['lm-ad']['wall_s']:>9.3f}{s['lm-fd']['wall_s']:>9.3f}"
+              f"{s['ipopt']['rms_albedo_error']:>10.2e}")
+
+    print("\n== Hidden corner (joint distances + albedos, IPOPT exact): accuracy vs time ==")
+    print(f"{'solver':>14}{'bins':>6}{'K':>3}{'tol':>8}{'noise':>8}{'iter':>6}{'solve s':>9}{'dist err (bins)':>17}"
+          f"{'dist err (m)':>14}{'alb err':>10}  status")
+    cases = []
+    for nb in ([512, 1024] if quick else [256, 512, 1024, 2048, 4096]):
+        cases.append(dict(n_bins=nb, bounces=3, tol=1e-8, noise=1e-7))
+    for K in ([2, 3] if quick else [2, 3, 4]):
+        cases.append(dict(n_bins=1024, bounces=K, tol=1e-8, noise=1e-7))
+    for tol in ([1e-2, 1e-8] if quick else [1e-1, 1e-2, 1e-4, 1e-6, 1e-8, 1e-10]):
+        cases.append(dict(n_bins=1024, bounces=3, tol=tol, noise=0.0))
+    for sv in ("lm-ad", "lm-fd", "lm-fd-numeric"):
+        cases.append(dict(n_bins=1024, bounces=3, tol=1e-8, noise=1e-7, solver=sv))
+    for c in cases:
+        r = _corner_case(**c)
+        res["accuracy"].append(r)
+        print(f"{r['solver']:>14}{r['n_bins']:>6}{r['bounces']:>3}{r['tol']:>8.0e}{r['noise_rel']:>8.0e}{r['iterations']:>6}"
+              f"{r['solve_s']:>9.3f}{r['max_distance_error_bins']:>17.2e}{r['max_distance_error_m']:>14.2e}"
+              f"{r['max_hidden_albedo_error']:>10.2e}  {r['status']}")
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(res, indent=1))
+    print(f"\nwrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
