@@ -625,9 +625,20 @@ class TransientModel:
         return amp, tau
 
     def _output(self, th):
-        """Symbolic STIR on the support bins (n_support,)."""
+        """Symbolic STIR on the support bins (n_support,) = A_fixed @ amp_fixed + y_variable.
+
+        Also kept for structured costs (``stircasadi.estimate.nlp`` folds traces): ``A_fixed``
+        (scipy CSC, n_support x n_fixed_paths, constant kernels), ``amp_fixed`` (MX), ``y_var``
+        (MX, the symbolic-kernel paths), ``fixed_trace`` (trace of each fixed path) and
+        ``variable_traces`` (bool per trace).
+        """
+        from scipy import sparse
+
         w, t0, nb = self.grid.bin_width, self.grid.start, self.grid.n_bins
         y = ca.MX.zeros(self.n_support, 1)
+        y_var = ca.MX(self.n_support, 1)
+        A_blocks, amps, ftr = [], [], []
+        var_tr = np.zeros(len(self.trace_lo), bool)
         for g, (k0, k1) in zip(self.paths, self._win):
             pos_of_bin = lambda tr, k: self.seg_start[tr] + (k - self.trace_lo[tr])  # noqa: E731
             fixed = np.flatnonzero(~g.variable)
@@ -647,9 +658,10 @@ class TransientModel:
                 rows = pos_of_bin(tr, kk[pi, mi])
                 vals = h[pi, mi]
                 nz = vals != 0.0
-                A = ca.DM(ca.Sparsity.triplet(self.n_support, len(fixed), rows[nz].tolist(),
-                                              pi[nz].tolist()), vals[nz])
-                y = y + ca.mtimes(A, amp.T)
+                A_blocks.append(sparse.csc_matrix((vals[nz], (rows[nz], pi[nz])),
+                                                  shape=(self.n_support, len(fixed))))
+                amps.append(amp.T)
+                ftr.append(g.trace[fixed])
             var = np.flatnonzero(g.variable)
             if len(var):
                 vv = g.verts[var]
@@ -669,8 +681,21 @@ class TransientModel:
                 cols = mi * len(var) + pi                                    # column-major vec
                 Sc = ca.DM(ca.Sparsity.triplet(self.n_support, len(var) * kmax, rows.tolist(),
                                                cols.tolist()), np.ones(len(rows)))
-                y = y + ca.mtimes(Sc, ca.vec(C))
-        return y
+                y_var = y_var + ca.mtimes(Sc, ca.vec(C))
+                var_tr[g.trace[var]] = True
+        if A_blocks:
+            A = sparse.hstack(A_blocks).tocsc()
+            self.A_fixed = A
+            self.amp_fixed = ca.vertcat(*amps)
+            self.fixed_trace = np.concatenate(ftr)
+            Acs = ca.DM(ca.Sparsity(A.shape[0], A.shape[1], A.indptr.tolist(), A.indices.tolist()),
+                        A.data)
+            y = ca.mtimes(Acs, self.amp_fixed)
+        else:
+            self.A_fixed, self.amp_fixed, self.fixed_trace = None, None, np.zeros(0, int)
+        self.y_var = y_var
+        self.variable_traces = var_tr
+        return y + y_var
 
     # ------------------------------------------------------------------ numeric evaluation
     def evaluate(self, x=None) -> np.ndarray:

@@ -90,6 +90,8 @@ class ReflectanceNLP:
         else:
             w = np.full(len(self.y), 1.0 / self.peak)
         self.w = w
+        self.fold_const = 0.0
+        self.n_folded_traces = 0
         self.f_extra = ca.MX(0)
         if self.poisson:
             if self.noise.get("model") != "poisson" or not self.noise.get("scale"):
@@ -104,6 +106,9 @@ class ReflectanceNLP:
             self.counts = counts
             self.f_data = ca.sum1(mu - ca.DM(counts) * ca.log(mu))
             self.r = None
+        elif cs.fold and not self.pem and model.A_fixed is not None:
+            self.r = self._folded_residual(w)
+            self.f_data = 0.5 * (ca.sumsqr(self.r) + self.fold_const)
         else:
             r = ca.DM(w) * (ca.DM(self.y) - M)
             if self.pem:
@@ -136,6 +141,58 @@ class ReflectanceNLP:
         if off.size >= 100 and np.std(off) > 0:
             return max(float(np.std(off)), floor), "off-support bins"
         return floor, "floor (noise-free or unknown; rescaled from residuals for uncertainty)"
+
+    def _folded_residual(self, w):
+        """Residuals folded trace by trace: ||W(y - A a)||^2 = ||Q^T W y - R a||^2 + const.
+
+        A trace whose paths all have constant kernels (fixed geometry) contributes
+        W_t (y_t - A_t a_t) with A_t (bins x paths of that trace); its thin QR W_t A_t = Q R
+        gives an exactly equivalent residual of length n_paths_t instead of n_bins_t (the
+        Fisher information J^T J is unchanged, and no cancellation occurs as it would in the
+        normal equations). Traces with symbolic kernels stay bin by bin.
+        """
+        m = self.model
+        A = m.A_fixed.tocsr()
+        seg = m.seg_start
+        y, wy_all = self.y, w * self.y
+        keep_rows, c_vals, R_r, R_c, R_v = [], [], [], [], []
+        const, out = 0.0, 0
+        n_fold = 0
+        for t in range(len(seg) - 1):
+            r0, r1 = int(seg[t]), int(seg[t + 1])
+            if r1 == r0:
+                continue
+            lo, hi = A.indptr[r0], A.indptr[r1]
+            cols = np.unique(A.indices[lo:hi])
+            if m.variable_traces[t] or len(cols) == 0 or len(cols) >= (r1 - r0):
+                keep_rows.append(np.arange(r0, r1))
+                continue
+            blk = A[r0:r1][:, cols].toarray() * w[r0:r1, None]
+            Q, R = np.linalg.qr(blk)
+            wy = wy_all[r0:r1]
+            qy = Q.T @ wy
+            const += float(wy @ wy - qy @ qy)
+            ii, jj = np.nonzero(R)
+            R_r.append(out + ii)
+            R_c.append(cols[jj])
+            R_v.append(R[ii, jj])
+            c_vals.append(qy)
+            out += len(cols)
+            n_fold += 1
+        parts = []
+        if out:
+            Rb = ca.DM(ca.Sparsity.triplet(out, A.shape[1], np.concatenate(R_r).tolist(),
+                                           np.concatenate(R_c).tolist()), np.concatenate(R_v))
+            parts.append(ca.DM(np.concatenate(c_vals)) - ca.mtimes(Rb, m.amp_fixed))
+        if keep_rows:
+            u = np.concatenate(keep_rows)
+            Au = A[u].tocsc()
+            Aud = ca.DM(ca.Sparsity(Au.shape[0], Au.shape[1], Au.indptr.tolist(), Au.indices.tolist()),
+                        Au.data)
+            parts.append(ca.DM(w[u]) * (ca.DM(y[u]) - ca.mtimes(Aud, m.amp_fixed) - m.y_var[u.tolist()]))
+        self.fold_const = max(const, 0.0)
+        self.n_folded_traces = n_fold
+        return ca.vertcat(*parts)
 
     def _whiten_ar1(self, r):
         m = self.model

@@ -55,6 +55,10 @@ class CostSettings:
     """Relative error level of ``weighting="relative"``."""
     tikhonov: float = 0.0
     """lambda of the Tikhonov term lambda ||x - x_ref||^2 on the scaled unknowns (>= 0)."""
+    fold: bool = True
+    """Fold traces with fixed geometry into n_paths residuals by a per-trace QR (exact: same
+    cost up to a constant, same Jacobian products; see ``ReflectanceNLP._folded_residual``).
+    Gaussian OEM only; the solve then no longer grows with the number of bins."""
     gloss_prior: float = 1.0
     """Weight w of a weak prior w ||x_g - x_g0||^2 on the scaled Phong unknowns (specular: scale 1,
     exponent: scale 10) toward their initial values. It keeps the NLP well posed where the data

@@ -49,12 +49,12 @@ def fisher_uncertainty(nlp, x) -> dict:
         H = J.T @ J
         meat = None
         if nlp.settings.cost.weighting != "noise":
-            # sandwich: Cov(r) = sigma^2 W^2 (W applied inside r, PEM whitening ignored here)
-            wJ = J * (nlp.sigma * nlp.w[:, None])
-            meat = wJ.T @ wJ
+            # sandwich: Cov(r) = sigma^2 W^2 (unfolded residuals; PEM whitening ignored here)
+            Jy = np.asarray(nlp.f_JM(x).full()) * nlp.w[:, None] ** 2 * nlp.sigma
+            meat = Jy.T @ Jy
         if nlp.sigma_source.startswith("floor"):
-            dof = max(len(r) - n, 1)
-            s2 = float(r @ r) / dof
+            dof = max(len(nlp.y) - n, 1)
+            s2 = (float(r @ r) + nlp.fold_const) / dof
             H = H / max(s2, 1e-300)
             sigma_used = nlp.sigma * np.sqrt(s2)
     Hs = 0.5 * (H + H.T)
