@@ -334,6 +334,25 @@ class TransientModel:
         D.free[k] = True
         return self
 
+    def set_general_brdf(self, patches, upper: float = 10.0 / math.pi,
+                         scale: float = 1.0 / math.pi) -> "TransientModel":
+        """Give ``patches`` a general, tabulated BRDF: one unknown f_kij per (k, i, j) met on a path.
+
+        f_kij (1/sr) is the value of patch i's BRDF for light from k (a patch, or the source
+        ``-1``) leaving toward j (a patch, or the camera ``-2``): the paper's general form-factor
+        model. Start values are the patch's current diffuse albedo / pi; bounds [0, upper]. Use
+        on small scenes: the number of unknowns grows as the number of (k, i, j) triples. The
+        NLP adds Helmholtz reciprocity f_kij = f_jik (the source and camera count as one
+        direction when co-located) and energy conservation over the patches as constraints.
+        """
+        self._check_open("set_general_brdf")
+        m = self._patch_mask(patches)
+        if np.any(m & self.glossy):
+            raise ModelError("A patch with a Phong BRDF cannot also be general; pick Lambertian patches.")
+        self.general = getattr(self, "general", np.zeros(self.M, bool)) | m
+        self._general_bounds = (0.0, float(upper), float(scale))
+        return self
+
     def fix(self, name: str, values, patches=None) -> "TransientModel":
         """Fix ``name`` to ``values`` on ``patches`` (no longer unknown there)."""
         self._check_open("fix")
@@ -362,6 +381,19 @@ class TransientModel:
                         raise ModelError(f"Initial {name} of patch {k} ({self.names[k]}) = {v:.6g} lies "
                                          f"outside its bounds [{lo:.6g}, {hi:.6g}]; pass initial= inside.")
                     blocks.append((name, k, c))
+        self.general = getattr(self, "general", np.zeros(self.M, bool))
+        self.triples = np.zeros((0, 3), int)
+        if self.general.any():
+            if self._params["albedo"].free[self.general].any():
+                raise ModelError("A general-BRDF patch has no albedo unknown (its f_kij are the unknowns); "
+                                 "declare set_unknown('albedo', ...) on the other patches only.")
+            self.triples = self._general_triples()
+            lo_, hi_, sc_ = self._general_bounds
+            T = len(self.triples)
+            f0 = self._params["albedo"].value[self.triples[:, 1]] / math.pi
+            self._params["fkij"] = _Param("fkij", f0.copy(), np.ones(T, bool), np.full(T, lo_),
+                                          np.full(T, hi_), np.full(T, sc_), np.zeros(T))
+            blocks += [("fkij", t, 0) for t in range(T)]
         if not blocks:
             raise ModelError("No unknowns declared: call set_unknown('albedo', ...) (or 'specular', "
                              "'exponent', 'position') before setup().")
@@ -372,7 +404,8 @@ class TransientModel:
                              "Fix the positions or give the model a GaussianIRF.")
         self.blocks = blocks
         self.n_x = len(blocks)
-        self.x_names = [f"{n}[{self.names[k]}]" + ("" if self._params[n].width == 1 else "xyz"[c])
+        self.x_names = [self._triple_name(k) if n == "fkij" else
+                        f"{n}[{self.names[k]}]" + ("" if self._params[n].width == 1 else "xyz"[c])
                         for n, k, c in blocks]
         sc = np.array([self._val(self._params[n].scale, k, c) for n, k, c in blocks])
         off = np.array([self._val(self._params[n].offset, k, c) for n, k, c in blocks])
@@ -384,13 +417,41 @@ class TransientModel:
         self.x0 = (v0 - off) / sc
         self.x = ca.MX.sym("x", self.n_x)
         self.theta_sym = self._theta_expressions(self.x)
-        self._enumerate_paths()
+        if not hasattr(self, "paths"):
+            self._enumerate_paths()
         self.y_sym = self._output(self.theta_sym)
         self.f_y = ca.Function("stir_model", [self.x], [self.y_sym], ["x"], ["y"])
         self._locked = True
         self.info.n_unknowns = self.n_x
         self.info.build_time_s = time.perf_counter() - t0
         return self
+
+    def _end_name(self, e):
+        return {-1: "src", -2: "cam"}.get(int(e), self.names[int(e)] if e >= 0 else str(e))
+
+    def _triple_name(self, t):
+        k, i, j = self.triples[t]
+        return f"f[{self._end_name(k)},{self.names[i]},{self._end_name(j)}]"
+
+    def _general_triples(self) -> np.ndarray:
+        """Every (prev, patch, next) met on a path at a general patch (-1 source, -2 camera)."""
+        # enumeration does not depend on the unknowns: reuse the path lists
+        if not hasattr(self, "paths"):
+            self._enumerate_paths()
+        out = set()
+        for g in self.paths:
+            v = g.verts
+            n = v.shape[1]
+            for m_ in range(n):
+                prev = v[:, m_ - 1] if m_ > 0 else np.full(len(v), -1)
+                nxt = v[:, m_ + 1] if m_ < n - 1 else np.full(len(v), -2)
+                sel = self.general[v[:, m_]]
+                out.update(zip(prev[sel].tolist(), v[sel, m_].tolist(), nxt[sel].tolist()))
+        return np.array(sorted(out), int).reshape(-1, 3)
+
+    def triple_index(self, prev, i, nxt) -> np.ndarray:
+        key = {tuple(t): n for n, t in enumerate(self.triples.tolist())}
+        return np.array([key[(int(a), int(b), int(c))] for a, b, c in zip(prev, i, nxt)], int)
 
     @staticmethod
     def _val(arr, k, c):
@@ -421,8 +482,8 @@ class TransientModel:
                     rows = [k for _, k, _ in idx]
                     cols = [j for j, _, _ in idx]
                     vals = [self.x_scale[j] for j, _, _ in idx]
-                    S = ca.DM(ca.Sparsity.triplet(self.M, self.n_x, rows, cols), vals)
-                    offs = np.zeros(self.M)
+                    S = ca.DM(ca.Sparsity.triplet(len(base), self.n_x, rows, cols), vals)
+                    offs = np.zeros(len(base))
                     for j, k, _ in idx:
                         offs[k] = self.x_offset[j]
                     expr = expr + ca.DM(offs) + ca.mtimes(S, x)
@@ -607,6 +668,15 @@ class TransientModel:
             ci, co, cio = dot(w_prev[m], nk), dot(w_next[m], nk), dot(w_prev[m], w_next[m])
             rho = alb[vk.tolist()].T
             f = Lambertian.formula(ci, co, cio, rho)
+            ge = self.general[vk]
+            if ge.any():
+                prev = verts[:, m - 1] if m > 0 else np.full(P_, -1)
+                nxt = verts[:, m + 1] if m < n - 1 else np.full(P_, -2)
+                idx = np.zeros(P_, int)
+                idx[ge] = self.triple_index(prev[ge], vk[ge], nxt[ge])
+                fg = th["fkij"][idx.tolist()].T
+                mask = ca.DM(ge.astype(float)).T
+                f = mask * fg + (1.0 - mask) * f
             gl = self.glossy[vk]
             if gl.any():
                 fp = Phong.formula(ci, co, cio, rho, spec[vk.tolist()].T, expo[vk.tolist()].T)

@@ -142,6 +142,48 @@ class ReflectanceNLP:
             return max(float(np.std(off)), floor), "off-support bins"
         return floor, "floor (noise-free or unknown; rescaled from residuals for uncertainty)"
 
+    def _general_constraints(self, th):
+        """Reciprocity f_kij = f_jik and energy sum_j f_kij a_j cos_i cos_j / d_ij^2 <= 1."""
+        m = self.model
+        T = m.triples
+        F = th["fkij"]
+        co_located = np.allclose(m.source, m.camera)
+        key = {tuple(t): n for n, t in enumerate(T.tolist())}
+        g, lb, ub, names = [], [], [], []
+        seen = set()
+        for n, (a, i, b) in enumerate(T.tolist()):
+            ra, rb = b, a
+            if co_located:
+                ra = -1 if b == -2 else b
+                rb = -2 if a == -1 else a
+            partner = key.get((ra, i, rb))
+            if partner is None or partner == n or (partner, n) in seen:
+                continue
+            seen.add((n, partner))
+            g.append(F[n] - F[partner])
+            lb.append(0.0)
+            ub.append(0.0)
+            names.append(f"reciprocity {m._triple_name(n)} = {m._triple_name(partner)}")
+        # energy: light arriving from a at i, sent to the patches j it sees
+        z, nr, ar = m.param("position").value, m.normals, m.areas
+        groups: dict = {}
+        for n, (a, i, b) in enumerate(T.tolist()):
+            if b >= 0:
+                groups.setdefault((a, i), []).append((n, b))
+        for (a, i), lst in groups.items():
+            expr = 0
+            for n, b in lst:
+                v = z[b] - z[i]
+                d = np.linalg.norm(v)
+                u = v / d
+                w_ = ar[b] * max(np.dot(u, nr[i]), 0) * max(-np.dot(u, nr[b]), 0) / d ** 2
+                expr = expr + w_ * F[n]
+            g.append(expr)
+            lb.append(-np.inf)
+            ub.append(1.0)
+            names.append(f"energy[{m._end_name(a)}->{m.names[i]}]")
+        return g, lb, ub, names
+
     def _folded_residual(self, w):
         """Residuals folded trace by trace: ||W(y - A a)||^2 = ||Q^T W y - R a||^2 + const.
 
@@ -225,6 +267,12 @@ class ReflectanceNLP:
             lbg += [-np.inf] * m.M
             ubg += [1.0 - cs.stability_margin] * m.M
             names += [f"stability[{nm}]" for nm in m.names]
+        if m.general.any():
+            g_, lb_, ub_, nm_ = self._general_constraints(th)
+            g += g_
+            lbg += lb_
+            ubg += ub_
+            names += nm_
         dist = m.param("distance")
         hid = np.flatnonzero(pos.free | dist.free)
         if cs.distance_constraints and len(hid):

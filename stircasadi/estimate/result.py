@@ -61,7 +61,7 @@ class Estimate:
         x = np.asarray(x, float)
         theta = m.theta(x[:m.n_x])
         std = {n: np.full_like(v, np.nan, dtype=float) for n, v in theta.items()}
-        ident = {n: np.ones(m.M, bool) for n in theta}
+        ident = {n: np.ones(len(v), bool) for n, v in theta.items()}
         free = {n: m.param(n).free.copy() for n in theta}
         free["position"] = free["position"] | free["distance"]
         flags = []
@@ -78,7 +78,8 @@ class Estimate:
                     ident[n][k] = False
             for n in theta:
                 for k in np.flatnonzero(~ident[n]):
-                    flags.append(f"{n} of patch {m.names[k]} is not identifiable from the data "
+                    what = m._triple_name(k) if n == "fkij" else f"{n} of patch {m.names[k]}"
+                    flags.append(f"{what} is not identifiable from the data "
                                  f"(std {np.max(np.atleast_1d(std[n][k])):.3g}).")
             for k, sp in unc["position_std_from_distances"].items():
                 std["position"][k] = sp if ident["distance"][k] else np.inf

@@ -92,7 +92,7 @@ def fisher_uncertainty(nlp, x) -> dict:
         name = m.blocks[j][0]
         if name in ("albedo", "specular"):
             ident[j] = std_theta[j] <= us.max_rel_std * (m.ubx[j] - m.lbx[j]) * m.x_scale[j]
-        elif name == "exponent":
+        elif name in ("exponent", "fkij"):
             ident[j] = std_theta[j] <= us.max_rel_std * max(abs(theta_vals[j]), m.x_scale[j])
         elif name in ("position", "distance"):
             ident[j] = std_theta[j] <= eps_pos
