@@ -598,9 +598,7 @@ class TransientModel:
         self._win = []
         for g in groups:
             tau = self._tau_numeric(g.verts, self._params["position"].value)
-            legs = g.verts.shape[1] + 1 if self.legs_included else g.verts.shape[1] - 1
             slack = 2.0 * reach[g.verts].sum(axis=1)  # each moving vertex touches <= 2 legs
-            del legs
             k0 = np.floor((tau - slack + lo_s - t0) / w).astype(np.int64)
             k1 = np.ceil((tau + slack + hi_s - t0) / w).astype(np.int64) + 1
             k0c, k1c = np.clip(k0, 0, nb), np.clip(k1, 0, nb)

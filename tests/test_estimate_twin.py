@@ -180,3 +180,15 @@ def test_probe_scene_nine_patches_one_hidden_position():
     d_true = np.linalg.norm(sc.positions[h] - sc.positions[:8], axis=1)
     assert np.abs(d_est - d_true).max() / gr.bin_width < 1e-6
     assert np.abs(e.values["albedo"] - sc.albedos).max() < 1e-8
+
+
+def test_warm_start_reconverges_quickly():
+    sc, gr, se, tr, cap = capture_of(hidden_corner, seed=4)
+    m, h, true_d = hidden_model(sc, gr, se.irf, d_offsets=[[0.012, -0.009], [-0.011, 0.012]])
+    m.setup()
+    nlp = ReflectanceNLP(m, cap.stir, quiet(), noise=cap.noise)
+    cold = solve_ipopt(nlp)
+    cap2 = se.capture(tr, seed=5)  # a new frame of the same scene
+    warm = solve_ipopt(ReflectanceNLP(m, cap2.stir, quiet(), noise=cap2.noise), warm=cold.warm_start)
+    assert warm.success and warm.iterations < cold.iterations
+    assert np.abs(warm.values["distance"][h] - true_d).max() < 0.05 * gr.bin_width
