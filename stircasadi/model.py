@@ -75,6 +75,7 @@ PARAMETERS = {
 }
 
 _SQRT2 = math.sqrt(2.0)
+_FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 
 
 def irf_from_samples(samples, bin_width: float, tol: float = 0.05):
@@ -92,13 +93,19 @@ def irf_from_samples(samples, bin_width: float, tol: float = 0.05):
     s = s / s.sum()
     x = (np.arange(len(s)) - (len(s) - 1) / 2.0) * bin_width
     mu = float(np.sum(x * s))
-    var = float(np.sum((x - mu) ** 2 * s)) - bin_width ** 2 / 12.0  # remove the bin's own width
-    if var > 0:
-        sigma = math.sqrt(var)
-        g = GaussianIRF(sigma / (1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))))
-        fit = g.cdf(x + 0.5 * bin_width) - g.cdf(x - 0.5 * bin_width)
-        if abs(mu) < 0.25 * bin_width and np.max(np.abs(fit - s)) <= tol * s.max():
-            return g
+    from scipy.optimize import minimize_scalar
+
+    def binned(sig):
+        g = GaussianIRF(sig / _FWHM_TO_SIGMA)
+        return g.cdf(x + 0.5 * bin_width) - g.cdf(x - 0.5 * bin_width)
+
+    # least-squares sigma of the bin-integrated Gaussian (moments fail when sigma < a bin)
+    res = minimize_scalar(lambda ls: float(np.sum((binned(math.exp(ls)) - s) ** 2)),
+                          bounds=(math.log(bin_width * 1e-3), math.log(bin_width * len(s))),
+                          method="bounded", options={"xatol": 1e-10})
+    sigma = math.exp(res.x)
+    if abs(mu) < 0.25 * bin_width and np.max(np.abs(binned(sigma) - s)) <= tol * s.max():
+        return GaussianIRF(sigma / _FWHM_TO_SIGMA)
     return ArrayIRF(tuple(s.tolist()), bin_width)
 
 

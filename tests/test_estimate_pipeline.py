@@ -98,3 +98,21 @@ def test_missing_areas_warn_and_bad_inputs_raise():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         with pytest.raises(ModelError, match="impulse response"):
             estimate_reflectance(cap, _geometry(sc))
+
+
+def test_hidden_position_branch_with_many_visible_patches():
+    """>= 3 visible patches: the hidden patch's position itself is unknown (box and distance
+    constraints at the geometry stage's eps)."""
+    from problems import nine_patch_hidden as nine
+
+    sc, gr, se, tr, cap = capture_of(nine, seed=0, sensor=nine.build_sensor(1e-6))
+    g = _geometry(sc)
+    g.positions[8] += np.array([0.006, -0.005, 0.004])
+    g.normals[8] = sc.normals[8]
+    g.hidden_distance_bounds = [{"id": 8, "visible_ids": list(range(8)), "eps": [0.025] * 8}]
+    e = estimate_reflectance(cap, g)
+    assert e.success and e.free["position"][8] and not e.free["distance"][8]
+    assert e.extra["hidden_eps"][8] == 0.025
+    err = np.linalg.norm(e.values["position"][8] - sc.positions[8])
+    assert err < 4 * np.linalg.norm(e.std["position"][8])
+    assert abs(e.values["albedo"][8] - 0.6) < 4 * e.std["albedo"][8]

@@ -11,7 +11,8 @@ and ``stircasadi run`` call after the geometry stage. It
    rho_i = pi a_i sum_k y[i, i, k] / phi (the time-integrated first bounce);
 3. for every hidden patch: its position (box +-eps) when it is seen from >= 3 visible patches,
    else its two distances to the visible patches (``set_hidden_distances``), from the geometry
-   stage's estimate, eps = the geometry stage's bound (at least ``constraints.hidden_eps``);
+   stage's estimate, eps = the geometry stage's bound (at least one bin; ``constraints.hidden_eps``
+   when the geometry stage gives none);
 4. solves the NLP with IPOPT (or LM), computes Fisher standard deviations and flags.
 
 Areas: the STIR identifies a hidden patch's albedo only through albedo x area. Areas come from
@@ -134,7 +135,13 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
             elif len(anchors) == 2:
                 model.set_hidden_distances(h, anchors, eps=eps)
     model.setup()
-    nlp = ReflectanceNLP(model, y, settings, noise=capture.noise)
+    hd = {}
+    fixed = np.flatnonzero(vis)
+    for h in hidden:
+        if int(ids[h]) in eps_used:
+            D0 = np.linalg.norm(pos[fixed] - pos[h], axis=1)
+            hd[int(h)] = (fixed, D0, eps_used[int(ids[h])])
+    nlp = ReflectanceNLP(model, y, settings, noise=capture.noise, hidden_distances=hd or None)
     t_model = time.perf_counter() - t0
     est = solve_ipopt(nlp) if settings.solver == "ipopt" else solve_lm(nlp)
     est.timings["geometry_s"] = t_geo
@@ -176,14 +183,15 @@ def _areas(areas, g, capture, pos, vis, ids):
 
 
 def _hidden_eps(g, pid, settings, bin_width) -> float:
-    floor = settings.constraints.hidden_eps
+    """The geometry stage's bound on this hidden patch's distances (at least one bin), else
+    ``constraints.hidden_eps``."""
     for b in getattr(g, "hidden_distance_bounds", []) or []:
         if int(b.get("id", -1)) == int(pid):
             e = np.asarray(b.get("eps", []), float)
             e = e[np.isfinite(e)]
             if e.size:
-                return float(max(e.max(), floor, 2 * bin_width))
-    return float(max(floor, 2 * bin_width))
+                return float(max(e.max(), bin_width))
+    return float(max(settings.constraints.hidden_eps, bin_width))
 
 
 # ---------------------------------------------------------------------- report
