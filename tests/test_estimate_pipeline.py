@@ -116,3 +116,16 @@ def test_hidden_position_branch_with_many_visible_patches():
     err = np.linalg.norm(e.values["position"][8] - sc.positions[8])
     assert err < 4 * np.linalg.norm(e.std["position"][8])
     assert abs(e.values["albedo"][8] - 0.6) < 4 * e.std["albedo"][8]
+
+
+def test_end_to_end_with_the_geometry_stage():
+    """Capture -> estimate_geometry -> estimate_reflectance (runs once the geometry stage exists)."""
+    pytest.importorskip("stircasadi.geometry.estimate")
+    sc, gr, se, tr, cap = capture_of(hidden_corner, seed=3)
+    e = estimate_reflectance(cap)  # runs the geometry stage itself
+    assert e.success, e.flags
+    vis = e.visible
+    za = (e.values["albedo"][vis] - sc.albedos[e.ids[vis]]) / e.std["albedo"][vis]
+    assert np.all(np.abs(za) < 5), za
+    js = e.to_json_dict()
+    assert "reflectance" in js["stages"] and len(js["patches"]) == len(e.ids)
