@@ -1,0 +1,208 @@
+"""Structure: positions from distances (isometric embedding), refined inside the eps bounds.
+
+When to use: after ``distances.solve_distances`` when the capture does not give the visible
+points; ``direct_positions`` when it does (known wall points, calibrated ray directions).
+
+1. Classical MDS with the source at the origin: the Gram matrix of the patch positions is
+   G_ij = (r_i^2 + r_j^2 - d_ij^2) / 2 (r_i = |z_i - s|); X = V_3 Lambda_3^(1/2) from its top
+   three eigenpairs. Missing d_ij are imputed from the current embedding and the step repeated.
+2. Bounded-error refinement (CasADi + IPOPT)::
+
+       min_X  sum_ij ((|x_i - x_j| - d_ij) / s_ij)^2 + sum_i ((|x_i| - r_i) / s_i)^2
+              + mu |X - X0|^2                                  (gauge: rotation about s)
+       s.t.   (d_ij - eps_ij)^2 <= |x_i - x_j|^2 <= (d_ij + eps_ij)^2   (and the same for r)
+
+   i.e. the maximum-likelihood positions that stay inside every error bound. If the bounds are
+   mutually infeasible they are widened (x2, reported as an ambiguity); a failed solve raises
+   ``SolverError``.
+
+The frame is fixed only up to a rotation/reflection about the source: compare by Procrustes.
+Neglects: nothing beyond the distance model; with fewer than 4 non-coplanar points (plus the
+source) the embedding is not unique (flagged by the caller).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..errors import GeometryError, SolverError
+
+__all__ = ["classical_mds", "refine_bounded", "direct_positions"]
+
+
+def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.ndarray, dict]:
+    """Positions (M, 3) with the source at the origin from leg lengths r and distances D."""
+    r = np.asarray(r, float)
+    D = np.array(D, float)
+    M = len(r)
+    if np.any(~np.isfinite(r)):
+        raise GeometryError("Classical MDS needs every source distance r_i (first onsets); "
+                            f"{int(np.sum(~np.isfinite(r)))} are missing. Give the capture's "
+                            "visible points (observed_xyz) or drop those patches.")
+    miss = ~np.isfinite(D)
+    np.fill_diagonal(miss, False)
+    Df = D.copy()
+    lo_b, hi_b = np.abs(r[:, None] - r[None, :]), r[:, None] + r[None, :]
+    Df = np.clip(Df, lo_b, hi_b)  # triangle inequality with the source
+    Df[miss] = np.sqrt(r[:, None] ** 2 + r[None, :] ** 2)[miss]
+    X = np.zeros((M, 3))
+    for it in range(n_iter if miss.any() else 1):
+        G = 0.5 * (r[:, None] ** 2 + r[None, :] ** 2 - Df ** 2)
+        w, V = np.linalg.eigh(G)
+        order = np.argsort(w)[::-1][:3]
+        lam = np.clip(w[order], 0, None)
+        X = V[:, order] * np.sqrt(lam)[None, :]
+        if not miss.any():
+            break
+        Dn = np.linalg.norm(X[:, None] - X[None], axis=2)
+        Dn = np.clip(Dn, np.abs(r[:, None] - r[None, :]), r[:, None] + r[None, :])
+        change = np.max(np.abs(Dn[miss] - Df[miss]))
+        Df[miss] = Dn[miss]
+        if change < 1e-10:
+            break
+    G = 0.5 * (r[:, None] ** 2 + r[None, :] ** 2 - Df ** 2)
+    ev = np.sort(np.linalg.eigvalsh(G))[::-1]
+    info = {"eigenvalues": ev[:6].tolist(), "n_missing": int(miss.sum() // 2),
+            "rank_ratio": float(ev[3] / ev[0]) if M > 3 and ev[0] > 0 else 0.0}
+    return X, info
+
+
+def _ls_refine(X0, I, J, d, ds, R, r, rs):
+    """Unconstrained weighted least squares (the ML positions), sparse Jacobian."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    M = X0.shape[0]
+    npair, nr = len(I), len(R)
+
+    def res(x):
+        X = x.reshape(M, 3)
+        v = X[I] - X[J]
+        out = [(np.linalg.norm(v, axis=1) - d) / ds, (np.linalg.norm(X[R], axis=1) - r) / rs]
+        return np.concatenate(out)
+
+    def jac(x):
+        X = x.reshape(M, 3)
+        v = X[I] - X[J]
+        nv = np.maximum(np.linalg.norm(v, axis=1), 1e-12)
+        u = v / nv[:, None] / ds[:, None]
+        rows = np.repeat(np.arange(npair), 3)
+        Jm = lil_matrix((npair + nr, 3 * M))
+        from scipy.sparse import coo_matrix
+        cols_i = (3 * I[:, None] + np.arange(3)).ravel()
+        cols_j = (3 * J[:, None] + np.arange(3)).ravel()
+        xr = X[R]
+        nr_ = np.maximum(np.linalg.norm(xr, axis=1), 1e-12)
+        ur = xr / nr_[:, None] / rs[:, None]
+        rows_r = npair + np.repeat(np.arange(nr), 3)
+        cols_r = (3 * R[:, None] + np.arange(3)).ravel()
+        data = np.concatenate([u.ravel(), -u.ravel(), ur.ravel()])
+        rr = np.concatenate([rows, rows, rows_r])
+        cc = np.concatenate([cols_i, cols_j, cols_r])
+        return coo_matrix((data, (rr, cc)), shape=(npair + nr, 3 * M)).tocsr()
+
+    sol = least_squares(res, X0.ravel(), jac=jac, method="trf", x_scale="jac", max_nfev=200,
+                        tr_solver="lsmr")
+    return sol.x.reshape(M, 3), sol
+
+
+def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarray,
+                   D_std: np.ndarray, eps: np.ndarray, r_eps: np.ndarray,
+                   max_widen: int = 2, mu: float = 1e-6, active_frac: float = 0.5) -> tuple[np.ndarray, dict]:
+    """ML positions inside the eps bounds (see the module docstring).
+
+    Two steps: the unconstrained weighted least-squares optimum (scipy TRF, sparse Jacobian),
+    then IPOPT with the bound constraints of every pair whose residual there exceeds
+    ``active_frac * eps`` (bounds far from active cannot change the local solution; all bounds
+    are checked again at the end and the count outside is reported)."""
+    import casadi as ca
+
+    t_start = time.perf_counter()
+    M = X0.shape[0]
+    iu, ju = np.triu_indices(M, 1)
+    known = np.isfinite(D[iu, ju]) & np.isfinite(eps[iu, ju]) & np.isfinite(D_std[iu, ju])
+    I, J = iu[known], ju[known]
+    d, ds, de = D[I, J], np.maximum(D_std[I, J], 1e-9), eps[I, J]
+    rk = np.isfinite(r) & np.isfinite(r_std) & np.isfinite(r_eps)
+    R = np.flatnonzero(rk)
+    rs = np.maximum(r_std[R], 1e-9)
+    X1, ls = _ls_refine(X0, I, J, d, ds, R, r[R], rs)
+    res_d = np.abs(np.linalg.norm(X1[I] - X1[J], axis=1) - d)
+    res_r = np.abs(np.linalg.norm(X1[R], axis=1) - r[R])
+    act = res_d > active_frac * de
+    act_r = res_r > active_frac * r_eps[R]
+    info = {"ls_status": ls.message, "ls_nfev": int(ls.nfev), "n_pairs": int(len(I))}
+    if not act.any() and not act_r.any():
+        info.update({"status": "bounds inactive at the least-squares optimum (no IPOPT needed)",
+                     "iterations": int(ls.nfev), "widen": 1.0, "n_constraints": 0,
+                     "n_outside": 0, "wall_time_s": time.perf_counter() - t_start})
+        return X1, info
+    Ia, Ja, da, dea = I[act], J[act], d[act], de[act]
+    Ra, ra, rea = R[act_r], r[R][act_r], r_eps[R][act_r]
+    # decision variables: displacement from the LS optimum in units of the typical distance std
+    # (values ~0.1-100, STYLE.md rule 7); constraints are normalised residuals in [-1, 1] * widen
+    scale = float(np.median(ds))
+    X = ca.SX.sym("dX", M, 3)
+    Xm = X1 + scale * X
+    dist = ca.sqrt(ca.sum2((Xm[I.tolist(), :] - Xm[J.tolist(), :]) ** 2))
+    rd = ca.sqrt(ca.sum2(Xm[R.tolist(), :] ** 2))
+    n_terms = max(len(I) + len(R), 1)
+    f = (ca.sumsqr((dist - d) / ds) + ca.sumsqr((rd - r[R]) / rs)) / n_terms
+    f = f + 1e-6 * ca.sumsqr(X)  # gauge: rotation about the source
+    g = ca.vertcat((ca.sqrt(ca.sum2((Xm[Ia.tolist(), :] - Xm[Ja.tolist(), :]) ** 2)) - da) / dea,
+                   (ca.sqrt(ca.sum2(Xm[Ra.tolist(), :] ** 2)) - ra) / rea)
+    x0 = np.zeros(3 * M)
+    stats_all = []
+    widen = 1.0
+    nlp = {"x": ca.reshape(X, -1, 1), "f": f, "g": g}
+    solver = ca.nlpsol("geom_refine", "ipopt", nlp,
+                       {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                        "ipopt.max_iter": 300, "ipopt.tol": 1e-8, "ipopt.max_cpu_time": 60.0})
+    for attempt in range(max_widen + 1):
+        lo = -widen * np.ones(len(da) + len(ra))
+        hi = widen * np.ones(len(da) + len(ra))
+        t0 = time.perf_counter()
+        sol = solver(x0=x0, lbg=lo, ubg=hi)
+        st = solver.stats()
+        stats_all.append({"return_status": st.get("return_status"), "success": bool(st.get("success")),
+                          "iterations": int(st.get("iter_count", 0)), "widen": widen,
+                          "wall_time_s": time.perf_counter() - t0})
+        if st.get("success"):
+            Xs = X1 + scale * np.array(sol["x"]).reshape(M, 3, order="F")
+            out_d = np.abs(np.linalg.norm(Xs[I] - Xs[J], axis=1) - d) > widen * de * (1 + 1e-6) + 1e-12
+            info.update({"status": st.get("return_status"), "iterations": int(st.get("iter_count", 0)),
+                         "widen": widen, "attempts": stats_all, "n_constraints": int(len(lo)),
+                         "n_outside": int(out_d.sum()), "wall_time_s": time.perf_counter() - t_start})
+            return Xs, info
+        widen *= 2.0
+    raise SolverError(f"Bounded-error position refinement failed: IPOPT returned "
+                      f"{stats_all[-1]['return_status']!r} even with the eps bounds widened x{widen / 2:g}. "
+                      "The distance bounds are mutually inconsistent; check the onsets (missing or "
+                      "mislabelled families) or raise the eps confidence level.",
+                      status=stats_all[-1]["return_status"], stats={"attempts": stats_all})
+
+
+def direct_positions(capture, ids: np.ndarray, c: np.ndarray | None = None) -> np.ndarray | None:
+    """Visible positions the capture already knows: ``observed_xyz`` / ``illuminated_xyz``, or
+    camera + c_j * u_j from calibrated ray directions ``extras['ray_directions']`` (n_obs, 3).
+    Returns (M, 3) for ``ids`` or None when the capture knows none of them."""
+    ids = np.asarray(ids)
+    out = np.full((len(ids), 3), np.nan)
+    for xyz, known in ((capture.observed_xyz, capture.obs_ids()), (capture.illuminated_xyz, capture.ill_ids())):
+        if xyz is not None:
+            for k, i in enumerate(ids):
+                hit = np.flatnonzero(known == i)
+                if hit.size and not np.isfinite(out[k]).all():
+                    out[k] = xyz[hit[0]]
+    rays = capture.extras.get("ray_directions") if isinstance(capture.extras, dict) else None
+    if rays is not None and c is not None:
+        rays = np.asarray(rays, float)
+        o = capture.camera_xyz if capture.camera_xyz is not None else np.zeros(3)
+        obs = capture.obs_ids()
+        for k, i in enumerate(ids):
+            hit = np.flatnonzero(obs == i)
+            if hit.size and not np.isfinite(out[k]).all() and np.isfinite(c[k]):
+                u = rays[hit[0]] / np.linalg.norm(rays[hit[0]])
+                out[k] = o + c[k] * u
+    return out if np.isfinite(out).all(axis=1).any() else None

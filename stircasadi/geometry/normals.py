@@ -1,0 +1,99 @@
+"""Normals from estimated positions: piecewise-planar fit (Fig. 11) and plane grouping.
+
+When to use: after the positions are estimated, for scenes made of smooth surfaces.
+
+1. Plane grouping by sequential RANSAC: repeatedly find the plane n . x = delta holding the most
+   points within ``tol`` (total least squares refit on the inliers), remove them, repeat while a
+   plane holds at least ``min_points``.
+2. Normal of a patch = the normal of its plane group when it has one; otherwise the smallest
+   principal axis of its k nearest neighbours (local PCA). Normals are oriented toward the
+   camera (a visible patch faces it) or, for hidden patches, toward the centroid of the visible
+   ones.
+
+Neglects: curved surfaces are approximated by their local plane (k neighbours); patches on a
+fold between two planes take the plane that holds them first.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["plane_groups", "estimate_normals"]
+
+
+def _fit_plane(P: np.ndarray) -> tuple[np.ndarray, float, float]:
+    c = P.mean(axis=0)
+    _, s, vt = np.linalg.svd(P - c, full_matrices=False)
+    n = vt[-1]
+    return n, float(n @ c), float(s[-1] / np.sqrt(max(len(P), 1)))
+
+
+def plane_groups(X: np.ndarray, tol: float | None = None, min_points: int = 6,
+                 n_trials: int = 400, seed: int = 0, max_planes: int = 20) -> np.ndarray:
+    """Label each point with its plane (0, 1, ...) or -1; sequential RANSAC, seeded."""
+    X = np.asarray(X, float)
+    M = len(X)
+    labels = np.full(M, -1)
+    if M < 3:
+        return labels
+    rng = np.random.default_rng(seed)
+    if tol is None:
+        # a fraction of the typical nearest-neighbour spacing
+        d = np.linalg.norm(X[:, None] - X[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        tol = 0.2 * float(np.median(d.min(axis=1)))
+    free = np.arange(M)
+    for lab in range(max_planes):
+        if len(free) < max(min_points, 3):
+            break
+        best = None
+        P = X[free]
+        for _ in range(n_trials):
+            a, b, c = rng.choice(len(free), 3, replace=False)
+            n = np.cross(P[b] - P[a], P[c] - P[a])
+            nn = np.linalg.norm(n)
+            if nn < 1e-12:
+                continue
+            n /= nn
+            inl = np.abs((P - P[a]) @ n) < tol
+            if best is None or inl.sum() > best.sum():
+                best = inl
+        if best is None or best.sum() < min_points:
+            break
+        n, delta, _ = _fit_plane(P[best])
+        inl = np.abs(P @ n - delta) < tol
+        if inl.sum() < min_points:
+            break
+        labels[free[inl]] = lab
+        free = free[~inl]
+    return labels
+
+
+def estimate_normals(X: np.ndarray, visible: np.ndarray | None = None, camera=None,
+                     labels: np.ndarray | None = None, k: int = 8) -> np.ndarray:
+    """Unit normals (M, 3): plane-group normals where grouped, local PCA elsewhere; NaN when
+    fewer than 3 points exist."""
+    X = np.asarray(X, float)
+    M = len(X)
+    out = np.full((M, 3), np.nan)
+    if M < 3:
+        return out
+    if labels is not None:
+        for lab in np.unique(labels[labels >= 0]):
+            idx = np.flatnonzero(labels == lab)
+            n, _, _ = _fit_plane(X[idx])
+            out[idx] = n
+    d = np.linalg.norm(X[:, None] - X[None], axis=2)
+    for i in range(M):
+        if np.isfinite(out[i]).all():
+            continue
+        nb = np.argsort(d[i])[: min(k + 1, M)]
+        if labels is not None and labels[i] >= 0:
+            nb = nb[labels[nb] == labels[i]]
+        if len(nb) >= 3:
+            out[i], _, _ = _fit_plane(X[nb])
+    vis = np.ones(M, bool) if visible is None else np.asarray(visible, bool)
+    cam = np.zeros(3) if camera is None else np.asarray(camera, float)
+    target = np.where(vis[:, None], cam[None, :], X[vis].mean(axis=0)[None, :] if vis.any() else cam)
+    flip = np.einsum("md,md->m", out, target - X) < 0
+    out[flip] *= -1
+    return out

@@ -1,0 +1,561 @@
+"""Onsets: the path length of the earliest path of a bounce family, below the bin width.
+
+When to use: first step of the geometry stage, on any Capture (simulated or measured).
+
+Model fitted (per trace, on a window around the family's leading edge)::
+
+    pulse:  y_k = a * g(c_k - tau) + b        (a point-like family: one IRF centred on tau)
+    edge:   y_k = a * G(c_k - tau) + b        (an extended surface: a step blurred by the IRF)
+
+c_k is bin k's centre, g the bin-integrated impulse response for a path at offset x from a bin
+centre (``GaussTemplate`` exact for a Gaussian IRF, ``SampledTemplate`` a cubic spline through
+the capture's ``irf`` samples), G its running integral (per bin) and b a constant background.
+tau is the onset (the IRF is centred on the path length, sensor.py). Fitting is a batched
+Levenberg-Marquardt over all traces at once. Weights: Gaussian noise -> uniform, noise sigma
+from the fit residual; Poisson counts -> 1/max(model, 1) (iteratively reweighted).
+
+Uncertainty: tau_std = sqrt([(J^T W J)^-1]_tau,tau) (times the residual scale for Gaussian
+noise). This is the Cramer-Rao bound of the window model evaluated at the estimate; the
+benchmark (benchmarks/geometry.py) compares the empirical spread with the CRB of the full trace.
+
+Neglects: later families that start inside the fit window bias tau (the window stops
+``right_sigmas`` IRF widths after the peak to limit this); an ideal (no) IRF gives no sub-bin
+information (tau = bin centre, std = w / sqrt(12)).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+from ..errors import GeometryError
+
+__all__ = ["GaussTemplate", "SampledTemplate", "make_template", "fit_onsets", "detect_pulses",
+           "trace_onsets", "first_onsets", "second_onsets", "third_onsets", "noise_level",
+           "OnsetFit", "onset_crb"]
+
+_SQ2PI = math.sqrt(2.0 * math.pi)
+_FWHM = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def _phi(z):
+    return np.exp(-0.5 * z * z) / _SQ2PI
+
+
+# ----------------------------------------------------------------------------- templates
+@dataclass(frozen=True)
+class GaussTemplate:
+    """Gaussian IRF of std ``sigma`` binned on bins of width ``w`` (both metres of path)."""
+
+    sigma: float
+    w: float
+
+    @property
+    def width(self) -> float:
+        return math.sqrt(self.sigma ** 2 + self.w ** 2 / 12.0)
+
+    def pulse(self, x):
+        s, h = self.sigma, self.w / 2
+        zp, zm = (x + h) / s, (x - h) / s
+        return ndtr(zp) - ndtr(zm), (_phi(zp) - _phi(zm)) / s
+
+    def edge(self, x):
+        s, h = self.sigma, self.w / 2
+        zp, zm = (x + h) / s, (x - h) / s
+
+        def psi(z):
+            return z * ndtr(z) + _phi(z)
+        return s / self.w * (psi(zp) - psi(zm)), (ndtr(zp) - ndtr(zm)) / self.w
+
+    def support(self) -> tuple[float, float]:
+        r = 5.0 * self.width
+        return -r, r
+
+
+class SampledTemplate:
+    """A measured IRF (samples on bins of width ``w``, peak at the centre sample) as a spline."""
+
+    def __init__(self, samples: np.ndarray, w: float):
+        from scipy.interpolate import CubicSpline
+
+        s = np.asarray(samples, float)
+        s = s / s.sum()
+        c = (len(s) - 1) / 2.0
+        x = (np.arange(len(s)) - c) * w
+        xp = np.concatenate([[x[0] - 2 * w, x[0] - w], x, [x[-1] + w, x[-1] + 2 * w]])
+        sp = np.concatenate([[0.0, 0.0], s, [0.0, 0.0]])
+        self._s = CubicSpline(xp, sp, bc_type="clamped")
+        self._ds = self._s.derivative()
+        self._int = self._s.antiderivative()
+        self._lo, self._hi = float(xp[0]), float(xp[-1])
+        self._total = float(self._int(self._hi))
+        self.w = w
+        m1 = float(np.sum(x * s))
+        self.sigma = math.sqrt(max(float(np.sum((x - m1) ** 2 * s)) - w * w / 12.0, (w / 4) ** 2))
+
+    @property
+    def width(self) -> float:
+        return math.sqrt(self.sigma ** 2 + self.w ** 2 / 12.0)
+
+    def pulse(self, x):
+        x = np.asarray(x, float)
+        inside = (x > self._lo) & (x < self._hi)
+        xc = np.clip(x, self._lo, self._hi)
+        return np.where(inside, self._s(xc), 0.0), np.where(inside, self._ds(xc), 0.0)
+
+    def edge(self, x):
+        x = np.asarray(x, float)
+        xc = np.clip(x, self._lo, self._hi)
+        val = self._int(xc) / self._total
+        inside = (x > self._lo) & (x < self._hi)
+        return val, np.where(inside, self._s(xc), 0.0) / self._total
+
+    def support(self) -> tuple[float, float]:
+        return self._lo, self._hi
+
+
+def _looks_gaussian(samples: np.ndarray, w: float) -> float | None:
+    """Return sigma if the samples are a binned Gaussian (within 2 %), else None."""
+    s = np.asarray(samples, float)
+    s = s / s.sum()
+    c = (len(s) - 1) / 2.0
+    x = (np.arange(len(s)) - c) * w
+    m1 = float(np.sum(x * s))
+    var = float(np.sum((x - m1) ** 2 * s)) - w * w / 12.0
+    if var <= (w / 8) ** 2 or abs(m1) > 0.05 * w:
+        return None
+    t = GaussTemplate(math.sqrt(var), w)
+    g, _ = t.pulse(x)
+    return math.sqrt(var) if np.max(np.abs(g - s)) < 0.02 * s.max() else None
+
+
+def make_template(capture=None, irf: np.ndarray | None = None, bin_width: float | None = None,
+                  fwhm: float | None = None):
+    """The onset template: from ``fwhm`` (Gaussian, metres of path), ``irf`` samples, the
+    capture's ``irf``, or estimated from the capture's first-bounce returns. Returns None for an
+    ideal (one-bin) response."""
+    w = bin_width if bin_width is not None else capture.grid.bin_width
+    if fwhm is not None:
+        return GaussTemplate(fwhm / _FWHM, w)
+    if irf is None and capture is not None:
+        irf = capture.irf
+    if irf is None and capture is not None:
+        irf = estimate_irf(capture)
+    if irf is None:
+        return None
+    irf = np.asarray(irf, float)
+    if np.count_nonzero(irf > 1e-6 * irf.max()) <= 1:
+        return None
+    sig = _looks_gaussian(irf, w)
+    return GaussTemplate(sig, w) if sig is not None else SampledTemplate(irf, w)
+
+
+def estimate_irf(capture, half_bins: int = 40) -> np.ndarray | None:
+    """Estimate the IRF from the first-bounce returns (diagonal traces of a full STIR):
+    align each trace's first peak by its sub-bin centroid and average. None when unusable."""
+    if capture.stir is None:
+        return None
+    ill, obs = capture.ill_ids(), capture.obs_ids()
+    common = np.intersect1d(ill, obs)
+    if common.size == 0:
+        return None
+    rows = [capture.trace(i, i) for i in common]
+    acc, n = np.zeros(2 * half_bins + 1), 0
+    for y in rows:
+        y = y - np.median(y)
+        k = int(np.argmax(y))
+        if k < half_bins or k + half_bins >= len(y) or y[k] <= 0:
+            continue
+        seg = y[k - half_bins:k + half_bins + 1]
+        acc += seg / seg.sum() if seg.sum() > 0 else 0
+        n += 1
+    if n == 0:
+        return None
+    acc /= n
+    # keep the central lobe only (later families of other traces average out)
+    k0 = half_bins
+    lo = k0
+    while lo > 0 and acc[lo - 1] > 1e-3 * acc[k0]:
+        lo -= 1
+    hi = k0
+    while hi < len(acc) - 1 and acc[hi + 1] > 1e-3 * acc[k0] and acc[hi + 1] <= acc[hi] * 1.05:
+        hi += 1
+    r = max(k0 - lo, hi - k0)
+    out = np.clip(acc[k0 - r:k0 + r + 1], 0, None)
+    return out if out.sum() > 0 else None
+
+
+# ----------------------------------------------------------------------------- noise
+def noise_level(y: np.ndarray) -> np.ndarray:
+    """Robust per-trace noise std from first differences (MAD / 0.6745 / sqrt 2)."""
+    d = np.diff(y, axis=-1)
+    med = np.median(d, axis=-1, keepdims=True)
+    return np.median(np.abs(d - med), axis=-1) / 0.6745 / math.sqrt(2.0)
+
+
+# ----------------------------------------------------------------------------- batched fit
+@dataclass
+class OnsetFit:
+    """Result arrays of ``fit_onsets`` (one entry per trace)."""
+
+    tau: np.ndarray
+    tau_std: np.ndarray
+    amplitude: np.ndarray
+    background: np.ndarray
+    snr: np.ndarray
+    found: np.ndarray
+    chi2: np.ndarray
+
+
+def _lm(y, c, p, tmpl, model, poisson, n_iter=40, fix_b=False, mask=None):
+    """Batched Levenberg-Marquardt on y (n, L) with bin centres c (n, L); p = (n, 3) [a, tau, b]."""
+    f = tmpl.pulse if model == "pulse" else tmpl.edge
+    n = y.shape[0]
+    lam = np.full(n, 1e-3)
+
+    def resid(p):
+        g, dg = f(c - p[:, 1:2])
+        m = p[:, 0:1] * g + p[:, 2:3]
+        w = 1.0 / np.maximum(m, 1.0) if poisson else np.ones_like(m)
+        if mask is not None:
+            w = w * mask
+        return y - m, g, dg, w
+
+    r, g, dg, w = resid(p)
+    cost = np.sum(w * r * r, axis=1)
+    npar = 2 if fix_b else 3
+    for _ in range(n_iter):
+        J = np.stack([g, -p[:, 0:1] * dg, np.ones_like(g)][:npar], axis=2)
+        JTJ = np.einsum("nlp,nl,nlq->npq", J, w, J)
+        JTr = np.einsum("nlp,nl,nl->np", J, w, r)
+        diag = np.einsum("npp->np", JTJ)
+        A = JTJ + lam[:, None, None] * np.eye(npar)[None] * (diag[:, :, None] + 1e-30)
+        try:
+            step = np.linalg.solve(A, JTr[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.zeros_like(JTr)
+        # cap the onset step at one IRF width
+        step[:, 1] = np.clip(step[:, 1], -tmpl.width, tmpl.width)
+        pn = p.copy()
+        pn[:, :npar] += step
+        rn, gn, dgn, wn = resid(pn)
+        costn = np.sum(wn * rn * rn, axis=1)
+        ok = np.isfinite(costn) & (costn <= cost)
+        p[ok] = pn[ok]
+        r[ok], g[ok], dg[ok], w[ok], cost[ok] = rn[ok], gn[ok], dgn[ok], wn[ok], costn[ok]
+        lam = np.where(ok, lam * 0.3, lam * 10.0)
+        if np.all(np.abs(step[:, 1]) < 1e-6 * tmpl.w) and _ > 3:
+            break
+    J = np.stack([g, -p[:, 0:1] * dg, np.ones_like(g)][:npar], axis=2)
+    JTJ = np.einsum("nlp,nl,nlq->npq", J, w, J)
+    return p, JTJ, cost
+
+
+def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse",
+               poisson: bool = False, right_sigmas: float = 1.5, left_sigmas: float = 4.0,
+               sigma_noise: np.ndarray | None = None, background: np.ndarray | None = None) -> OnsetFit:
+    """Fit the onset of the family near ``tau0`` in each row of ``y`` (n, n_bins).
+
+    The window is [tau0 - left_sigmas*W, peak + right_sigmas*W] (W = IRF width); for
+    ``model="edge"`` it ends at the plateau instead. Returns an ``OnsetFit``.
+    """
+    y = np.atleast_2d(np.asarray(y, float))
+    n, nb = y.shape
+    w = grid.bin_width
+    tau0 = np.broadcast_to(np.asarray(tau0, float), (n,)).copy()
+    W = tmpl.width
+    nl = int(math.ceil(left_sigmas * W / w)) + 1
+    nr = int(math.ceil((right_sigmas + 1.5) * W / w)) + 1
+    L = nl + nr + 1
+    k0 = np.round((tau0 - grid.start) / w - 0.5).astype(int)
+    starts = np.clip(k0 - nl, 0, max(nb - L, 0))
+    L = min(L, nb)
+    idx = starts[:, None] + np.arange(L)[None, :]
+    Y = np.take_along_axis(y, idx, axis=1)
+    C = grid.start + (idx + 0.5) * w
+    if background is None:
+        b0 = np.median(Y[:, : max(3, nl // 2)], axis=1)
+    else:
+        b0 = np.asarray(background, float) * np.ones(n)
+    if model == "pulse":
+        a0 = np.maximum(Y.max(axis=1) - b0, 1e-30)
+        g0, _ = tmpl.pulse(np.zeros(1))
+        a0 = a0 / max(float(g0[0]), 1e-12)
+    else:
+        a0 = np.maximum(np.percentile(Y, 90, axis=1) - b0, 1e-30)
+    # Restrict the window's right end: for a pulse stop right_sigmas*W after tau0; edges need
+    # the plateau (tau0 + 2.5 W). Bins beyond get zero weight via masking (set to model later).
+    right = tau0 + (right_sigmas if model == "pulse" else 2.5) * W
+    mask = C <= right[:, None]
+    # scale amplitudes to O(1) for conditioning
+    scale = np.maximum(a0, 1e-300)
+    Ys = Y / scale[:, None]
+    p = np.stack([np.ones(n), tau0, b0 / scale], axis=1)
+    for _ in range(3):
+        p, JTJ, cost = _lm(Ys, C, p, tmpl, model, poisson=False, n_iter=30, mask=mask)
+        if poisson:
+            # IRLS in count units: weights 1/model (model in counts)
+            pc = p.copy()
+            pc[:, 0] *= scale
+            pc[:, 2] *= scale
+            pc, JTJ, cost = _lm(Y, C, pc, tmpl, model, poisson=True, n_iter=30, mask=mask)
+            p = pc.copy()
+            p[:, 0] /= scale
+            p[:, 2] /= scale
+            break
+        new_right = p[:, 1] + (right_sigmas if model == "pulse" else 2.5) * W
+        new_mask = C <= new_right[:, None]
+        if np.array_equal(new_mask, mask):
+            break
+        mask = new_mask
+    nfit = mask.sum(axis=1)
+    dof = np.maximum(nfit - 3, 1)
+    try:
+        cov = np.linalg.pinv(JTJ)
+    except np.linalg.LinAlgError:
+        cov = np.full((n, 3, 3), np.nan)
+    var_tau = cov[:, 1, 1]
+    if poisson:
+        amp = p[:, 0]
+        bg = p[:, 2]
+        chi2 = cost / dof
+        s_noise = np.sqrt(np.maximum(amp, 1.0))
+    else:
+        s2 = cost / dof  # residual variance in scaled units
+        if sigma_noise is not None:
+            s2 = np.maximum(s2, (np.asarray(sigma_noise, float) / scale) ** 2)
+        var_tau = var_tau * s2
+        amp = p[:, 0] * scale
+        bg = p[:, 2] * scale
+        chi2 = s2
+        s_noise = np.sqrt(s2) * scale
+    g_peak = float(tmpl.pulse(np.zeros(1))[0][0]) if model == "pulse" else 1.0
+    snr = amp * g_peak / np.maximum(s_noise, 1e-300)
+    tau = p[:, 1]
+    found = np.isfinite(tau) & np.isfinite(var_tau) & (amp > 0) & (np.abs(tau - tau0) < 3 * W)
+    tau_std = np.sqrt(np.maximum(var_tau, 0)) if True else None
+    return OnsetFit(tau=tau, tau_std=tau_std, amplitude=amp, background=bg, snr=snr, found=found,
+                    chi2=chi2)
+
+
+def onset_crb(tmpl, amplitude: float, sigma_noise: float, grid, tau: float,
+              model: str = "pulse") -> float:
+    """Cramer-Rao bound (std) of the onset from a whole trace with unknown amplitude and
+    background under white Gaussian noise ``sigma_noise``."""
+    c = grid.centers if hasattr(grid, "centers") else grid.start + (np.arange(grid.n_bins) + 0.5) * grid.bin_width
+    f = tmpl.pulse if model == "pulse" else tmpl.edge
+    g, dg = f(c - tau)
+    J = np.stack([g, -amplitude * dg, np.ones_like(g)], axis=1)
+    F = J.T @ J / sigma_noise ** 2
+    return float(math.sqrt(np.linalg.inv(F)[1, 1]))
+
+
+# ----------------------------------------------------------------------------- detection
+def _smooth(y, tmpl, w):
+    """Matched filter (correlate with the pulse template) for detection."""
+    if tmpl is None:
+        return y
+    half = int(math.ceil(2.5 * tmpl.width / w))
+    x = np.arange(-half, half + 1) * w
+    k, _ = tmpl.pulse(x)
+    k = k / np.sum(k * k) * np.sum(k) if np.sum(k * k) > 0 else k
+    k = k / k.sum()
+    from scipy.ndimage import correlate1d
+
+    return correlate1d(y, k, axis=-1, mode="nearest")
+
+
+def detect_pulses(y: np.ndarray, grid, tmpl, max_pulses: int = 1, k_sigma: float = 6.0,
+                  t_min: float | None = None, poisson: bool = False, rel_min: float = 0.0,
+                  model: str = "pulse", right_sigmas: float = 1.5):
+    """Greedy detection of up to ``max_pulses`` families in one trace (earliest first).
+
+    Each pass finds the earliest bin of the residual's matched-filter output above
+    background + k_sigma * noise, fits the family's onset there, subtracts the fitted pulse and
+    repeats after it. Returns a list of dicts (tau, tau_std, amplitude, snr).
+    """
+    y = np.asarray(y, float)
+    w = grid.bin_width
+    c = grid.start + (np.arange(len(y)) + 0.5) * w
+    sig = float(noise_level(y))
+    bg = float(np.median(y[: max(8, len(y) // 8)])) if t_min is None else \
+        float(np.median(y[c < t_min])) if np.any(c < t_min) else float(np.median(y))
+    resid = y.copy()
+    out = []
+    tlo = -np.inf if t_min is None else t_min
+    W = tmpl.width if tmpl is not None else w
+    sm_noise = sig
+    if tmpl is not None:
+        # noise of the matched-filter output
+        half = int(math.ceil(2.5 * tmpl.width / w))
+        k, _ = tmpl.pulse(np.arange(-half, half + 1) * w)
+        k = k / k.sum()
+        sm_noise = sig * math.sqrt(float(np.sum(k * k)))
+    first_amp = None
+    for _ in range(max_pulses):
+        sm = _smooth(resid, tmpl, w)
+        if poisson:
+            thr = bg * 0 + bg + k_sigma * np.sqrt(np.maximum(sm, 1.0)) * (sm_noise / max(sig, 1e-300) if sig > 0 else 1)
+        else:
+            thr = bg + k_sigma * max(sm_noise, 1e-300)
+        above = np.flatnonzero((sm > thr) & (c >= tlo))
+        if above.size == 0:
+            break
+        k = int(above[0])
+        # walk to the local peak of the smoothed residual
+        kp = int(_first_peak(sm[None], np.array([k]), int(math.ceil(8 * W / w)))[0]) \
+            if model == "pulse" else k
+        tau0 = c[kp]
+        if tmpl is None:
+            out.append({"tau": float(c[k]), "tau_std": w / math.sqrt(12.0),
+                        "amplitude": float(y[k] - bg), "snr": float((y[k] - bg) / max(sig, 1e-300))})
+            resid[k] = bg
+            tlo = c[k] + w
+            continue
+        fit = fit_onsets(resid[None], grid, tmpl, np.array([tau0]), model=model, poisson=poisson,
+                         right_sigmas=right_sigmas, background=None)
+        tau = float(fit.tau[0])
+        if not fit.found[0]:
+            tau = tau0
+        amp = float(fit.amplitude[0])
+        if first_amp is None:
+            first_amp = amp
+        elif amp < rel_min * first_amp:
+            break
+        out.append({"tau": tau, "tau_std": float(fit.tau_std[0]), "amplitude": amp,
+                    "snr": float(fit.snr[0])})
+        if model == "pulse":
+            g, _ = tmpl.pulse(c - tau)
+            resid = resid - amp * g
+        tlo = tau + 0.5 * W
+    return out
+
+
+# ----------------------------------------------------------------------------- STIR-level
+def _is_poisson(capture) -> bool:
+    return str(capture.noise.get("model", "")).lower() == "poisson"
+
+
+def first_onsets(capture, tmpl=None, **kw):
+    """O1_i for every patch both illuminated and observed: (ids, O1, O1_std, snr)."""
+    tmpl = tmpl if tmpl is not None else make_template(capture)
+    ids = np.intersect1d(capture.ill_ids(), capture.obs_ids())
+    if ids.size == 0:
+        raise GeometryError("First onsets need patches that are both illuminated and observed "
+                            "(diagonal traces); this capture has none in common. Known visible "
+                            "points (observed_xyz) can replace them.")
+    Y = np.stack([capture.trace(i, i) for i in ids])
+    return ids, *_first_family(Y, capture, tmpl, **kw)
+
+
+def _first_family(Y, capture, tmpl, k_sigma: float = 6.0, right_sigmas: float = 1.5,
+                  model: str = "pulse"):
+    grid = capture.grid
+    n = Y.shape[0]
+    w = grid.bin_width
+    c = grid.start + (np.arange(grid.n_bins) + 0.5) * w
+    poisson = _is_poisson(capture)
+    sig = noise_level(Y)
+    bg = np.median(Y[:, : max(8, grid.n_bins // 8)], axis=1)
+    sm = _smooth(Y, tmpl, w)
+    if tmpl is not None:
+        half = int(math.ceil(2.5 * tmpl.width / w))
+        k, _ = tmpl.pulse(np.arange(-half, half + 1) * w)
+        k = k / k.sum()
+        smn = sig * math.sqrt(float(np.sum(k * k)))
+    else:
+        smn = sig
+    thr = bg + k_sigma * np.maximum(smn, 1e-300)
+    if poisson:
+        thr = bg + k_sigma * np.sqrt(np.maximum(bg, 1.0))
+    above = sm > thr[:, None]
+    has = above.any(axis=1)
+    k0 = np.where(has, np.argmax(above, axis=1), 0)
+    tau = np.full(n, np.nan)
+    std = np.full(n, np.nan)
+    snr = np.zeros(n)
+    if not has.any():
+        return tau, std, snr
+    if tmpl is None:
+        tau[has] = c[k0[has]]
+        std[has] = w / math.sqrt(12.0)
+        snr[has] = (Y[has, k0[has]] - bg[has]) / np.maximum(sig[has], 1e-300)
+        return tau, std, snr
+    kp = _first_peak(sm, k0, int(math.ceil(8 * tmpl.width / w))) if model == "pulse" else k0
+    fit = fit_onsets(Y[has], grid, tmpl, c[kp[has]], model=model, poisson=poisson,
+                     right_sigmas=right_sigmas)
+    ok = fit.found
+    idx = np.flatnonzero(has)
+    tau[idx[ok]] = fit.tau[ok]
+    std[idx[ok]] = fit.tau_std[ok]
+    snr[idx] = fit.snr
+    return tau, std, snr
+
+
+def _first_peak(sm: np.ndarray, k0: np.ndarray, span: int) -> np.ndarray:
+    """Index of the first local maximum of each row of ``sm`` at or after ``k0`` (within span)."""
+    n, nb = sm.shape
+    win = np.clip(k0[:, None] + np.arange(span + 2)[None, :], 0, nb - 1)
+    seg = np.take_along_axis(sm, win, axis=1)
+    down = seg[:, 1:] < seg[:, :-1]
+    first = np.where(down.any(axis=1), np.argmax(down, axis=1), np.argmax(seg, axis=1))
+    return win[np.arange(n), first]
+
+
+def second_onsets(capture, tmpl=None, **kw):
+    """O2[a, b] = onset of trace (ill_ids[a], obs_ids[b]) (NaN where none): (ill, obs, O2, O2_std, snr).
+
+    Diagonal entries hold the first onsets (the earliest family of trace (i, i))."""
+    tmpl = tmpl if tmpl is not None else make_template(capture)
+    ill, obs = capture.ill_ids(), capture.obs_ids()
+    if capture.stir is not None:
+        Y = capture.stir.reshape(-1, capture.n_bins)
+    else:
+        Y = np.stack([capture.trace(i, j) for i in ill for j in obs])
+    tau, std, snr = _first_family(Y, capture, tmpl, **kw)
+    sh = (len(ill), len(obs))
+    return ill, obs, tau.reshape(sh), std.reshape(sh), snr.reshape(sh)
+
+
+def trace_onsets(y, grid, tmpl, max_pulses: int = 6, t_min=None, poisson=False, k_sigma=6.0,
+                 rel_min: float = 0.0):
+    """All detectable families in one trace (list of dicts, earliest first)."""
+    return detect_pulses(y, grid, tmpl, max_pulses=max_pulses, t_min=t_min, poisson=poisson,
+                         k_sigma=k_sigma, rel_min=rel_min)
+
+
+def third_onsets(capture, tmpl=None, after: np.ndarray | None = None, max_pulses: int = 6,
+                 k_sigma: float = 6.0, exclude: dict | None = None, exclude_tol: float | None = None):
+    """Families after the first/second one in every trace, candidates for hidden-patch returns.
+
+    Parameters
+    ----------
+    after : (n_ill, n_obs) onsets of the families already explained (first/second); third
+        onsets are searched later than after + one IRF width (NaN -> whole trace).
+    exclude : {(i, j): [times]} predicted returns of known (visible) paths to drop.
+
+    Returns {(ill_id, obs_id): [dict(tau, tau_std, amplitude, snr), ...]}.
+    """
+    tmpl = tmpl if tmpl is not None else make_template(capture)
+    ill, obs = capture.ill_ids(), capture.obs_ids()
+    poisson = _is_poisson(capture)
+    W = tmpl.width if tmpl is not None else capture.grid.bin_width
+    tol = exclude_tol if exclude_tol is not None else 1.5 * W
+    out = {}
+    for a, i in enumerate(ill):
+        for b, j in enumerate(obs):
+            y = capture.trace(i, j)
+            pulses = detect_pulses(y, capture.grid, tmpl, max_pulses=max_pulses + 1,
+                                   poisson=poisson, k_sigma=k_sigma)
+            t_after = None if after is None else after[a, b]
+            keep = []
+            for p in pulses:
+                if t_after is not None and np.isfinite(t_after) and p["tau"] < t_after + 0.5 * W:
+                    continue
+                if exclude and (i, j) in exclude and any(abs(p["tau"] - t) < tol for t in exclude[(i, j)]):
+                    continue
+                keep.append(p)
+            out[(int(i), int(j))] = keep[:max_pulses]
+    return out
