@@ -52,7 +52,8 @@ def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.nd
         w, V = np.linalg.eigh(G)
         order = np.argsort(w)[::-1][:3]
         lam = np.clip(w[order], 0, None)
-        X = V[:, order] * np.sqrt(lam)[None, :]
+        X = np.zeros((M, 3))
+        X[:, : len(order)] = V[:, order] * np.sqrt(lam)[None, :]
         if not miss.any():
             break
         Dn = np.linalg.norm(X[:, None] - X[None], axis=2)

@@ -14,8 +14,8 @@ best). Then two nonlinear least-squares models (robust soft-L1 loss, scipy):
 * plane:  t_p = |mirror_plane(L_p) - D_p|  (= 2 dist(P, plane) when confocal; the earliest
   path to a plane reflects at it), plane n . x = delta.
 
-The hidden-object depth is the plane's distance from the centre of the wall along the wall
-normal. Neglects: multiple hidden objects (the earliest wins per trace), occlusion, traces
+The hidden-object depth (``extras['depth_m']``) is the fitted point's distance from the wall
+plane; the plane's depth in front of the wall centre is ``extras['plane_depth_m']``. Neglects: multiple hidden objects (the earliest wins per trace), occlusion, traces
 whose earliest return comes from an object edge (down-weighted by the robust loss).
 """
 from __future__ import annotations
@@ -186,6 +186,8 @@ def estimate_relay(capture, gate_m: float | None = None, irf_fwhm: float | None 
     pl = fit_plane(on["L"], on["D"], on["tau"], on["tau_std"])
     X, cov, rp = fit_point(on["L"], on["D"], on["tau"], on["tau_std"])
     t2 = time.perf_counter()
+    wn, wc = pl["wall_normal"], pl["wall_centre"]
+    point_depth = float((X - wc) @ wn)
     ids_max = int(max(capture.ill_ids().max(), capture.obs_ids().max()))
     foot = pl["wall_centre"] + pl["depth"] * pl["wall_normal"]
     positions = np.vstack([foot, X])
@@ -211,6 +213,7 @@ def estimate_relay(capture, gate_m: float | None = None, irf_fwhm: float | None 
                                           t2 - t1, bool(pl["result"].success),
                                           {"depth_m": pl["depth"], "depth_std_m": pl["depth_std"]}),
                "hidden_point": StageStats("hidden_point", str(rp.message), int(rp.nfev), 0.0,
-                                          bool(rp.success))},
-        extras={"plane": {k: v for k, v in pl.items() if k != "result"}, "onsets": on})
+                                          bool(rp.success), {"depth_m": point_depth})},
+        extras={"plane": {k: v for k, v in pl.items() if k != "result"}, "onsets": on,
+                "depth_m": point_depth, "plane_depth_m": pl["depth"]})
     return est

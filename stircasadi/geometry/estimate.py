@@ -1,0 +1,210 @@
+"""``estimate_geometry``: the geometry stage from a Capture (see the package docstring).
+
+Full STIR with legs included -> onsets -> T2 distances (+eps) -> positions (the capture's
+visible points when it knows them, else MDS + bounded IPOPT refinement) -> normals and plane
+groups -> hidden patches from third onsets (robust labeling). Rectified relay-wall / confocal
+captures go to ``relay.estimate_relay``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import GeometryError, SolverError
+from . import distances as dm
+from . import embedding as em
+from . import hidden as hm
+from . import normals as nm
+from . import onsets as on
+from .result import GeometryEstimate, StageStats
+
+
+@dataclass
+class GeometrySettings:
+    """Settings of the geometry stage."""
+
+    #: two-sided confidence of the eps bounds
+    eps_level: float = 0.99
+    #: onset model-error allowance added (in quadrature) to every onset std, in bins
+    onset_floor_bins: float = 0.01
+    #: detection threshold (noise standard deviations of the matched filter)
+    k_sigma: float = 6.0
+    #: onset fit window: IRF widths after the peak
+    right_sigmas: float = 1.5
+    #: refine positions with the bounded-error IPOPT problem
+    refine: bool = True
+    #: labeling of hidden returns: "robust" or "paper"
+    hidden_method: str = "robust"
+    #: most third-onset families searched per trace
+    max_third: int = 6
+    #: Gaussian IRF FWHM (metres of path) when the capture has no irf (None: estimate)
+    irf_fwhm: float | None = None
+
+    def validate(self) -> "GeometrySettings":
+        if not 0 < self.eps_level < 1:
+            raise GeometryError(f"eps_level must be in (0, 1); got {self.eps_level!r}.")
+        if self.hidden_method not in ("robust", "paper"):
+            raise GeometryError(f"hidden_method must be 'robust' or 'paper'; got {self.hidden_method!r}.")
+        return self
+
+
+def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySettings | None = None
+                      ) -> GeometryEstimate:
+    """Positions, normals, distances with eps, and hidden patches from ``capture``.
+
+    Parameters
+    ----------
+    capture : Capture (full STIR with legs, or a relay-wall paired/confocal capture).
+    hidden : number of hidden patches to look for (None: as many as the data support; 0: none).
+    settings : GeometrySettings.
+    """
+    st = (settings or GeometrySettings()).validate()
+    if capture.stir is None or not capture.legs_included:
+        from .relay import estimate_relay
+        return estimate_relay(capture, irf_fwhm=st.irf_fwhm)
+    stats: dict = {}
+    amb: list = []
+    t0 = time.perf_counter()
+    tmpl = on.make_template(capture, fwhm=st.irf_fwhm)
+    ill, obs, O, S, snr = on.second_onsets(capture, tmpl, k_sigma=st.k_sigma, right_sigmas=st.right_sigmas)
+    w = capture.grid.bin_width
+    src = capture.source_xyz if capture.source_xyz is not None else np.zeros(3)
+    cam = capture.camera_xyz if capture.camera_xyz is not None else src
+    colocated = bool(np.linalg.norm(src - cam) < 1e-9)
+    # third onsets (hidden returns) and removal of off-diagonal earliest families that are
+    # hidden returns (visible patches that do not see each other)
+    third = {}
+    if hidden is None or hidden > 0:
+        third = on.third_onsets(capture, tmpl, after=None, max_pulses=st.max_third, k_sigma=st.k_sigma)
+    ii = {int(v): k for k, v in enumerate(ill)}
+    oo = {int(v): k for k, v in enumerate(obs)}
+    for i in ill:
+        i = int(i)
+        if i in oo and (i, i) in third:
+            third[(i, i)] = [p for p in third[(i, i)] if p["tau"] > O[ii[i], oo[i]] + 0.5 * tmpl.width] \
+                if tmpl is not None else third[(i, i)][1:]
+    if third:
+        for (i, j), pulses in list(third.items()):
+            if i == j or not np.isfinite(O[ii[i], oo[j]]) or i not in oo or j not in ii:
+                continue
+            Ei = third.get((i, i), [])
+            Ej = third.get((j, j), [])
+            if not Ei or not Ej:
+                continue
+            oi_, oj_ = O[ii[i], oo[i]], O[ii[j], oo[j]]
+            e = O[ii[i], oo[j]] - oi_ / 2 - oj_ / 2
+            sums = [(p["tau"] - oi_) / 2 + (q["tau"] - oj_) / 2 for p in Ei for q in Ej]
+            tol = 4 * max(S[ii[i], oo[j]], 1e-9) + 0.05 * (tmpl.width if tmpl else w)
+            if any(abs(e - s_) < tol for s_ in sums):
+                O[ii[i], oo[j]] = np.nan  # a hidden return, not a second bounce
+    stats["onsets"] = StageStats("onsets", "ok", 0, time.perf_counter() - t0, True,
+                                 {"n_O1": int(np.isfinite(np.diag(O[:, [oo.get(int(i), 0) for i in ill]])).sum())
+                                  if len(ill) else 0,
+                                  "n_O2": int(np.isfinite(O).sum()),
+                                  "irf": type(tmpl).__name__ if tmpl is not None else "ideal"})
+    t1 = time.perf_counter()
+    sol = dm.solve_distances(ill, obs, O, S, colocated=colocated, level=st.eps_level,
+                             floor=st.onset_floor_bins * w)
+    stats["distances"] = StageStats("distances", "ok", 0, time.perf_counter() - t1, True,
+                                    {"n_rejected": len(sol.rejected or []), "chi2": sol.residual_chi2})
+    ids = sol.ids
+    M = len(ids)
+    t2 = time.perf_counter()
+    X = em.direct_positions(capture, ids, c=sol.c)
+    frame = "capture"
+    if X is None or not np.isfinite(X).all():
+        frame = "source-origin"
+        if not np.isfinite(sol.r).all():
+            raise GeometryError(f"{int(np.sum(~np.isfinite(sol.r)))} visible patches have no first "
+                                "onset, so their distance to the source is unknown and they cannot "
+                                "be placed. Give the capture's visible points (observed_xyz) or "
+                                "check the diagonal traces.")
+        X0, info = em.classical_mds(sol.r, sol.D)
+        if M < 3 or info["n_missing"] > 0 and M <= 3:
+            amb.append({"kind": "underdetermined-embedding", "patches": ids.tolist(),
+                        "message": f"{info['n_missing']} of the {M * (M - 1) // 2} patch-to-patch "
+                                   "distances are missing (no second bounce); with so few patches the "
+                                   "embedding is not unique and positions are one member of a family."})
+        X = X0
+        stats["embedding"] = StageStats("embedding", "ok", 0, time.perf_counter() - t2, True,
+                                        {"n_missing": info["n_missing"], "rank_ratio": info["rank_ratio"]})
+        if st.refine and M >= 2:
+            t3 = time.perf_counter()
+            try:
+                X, rinfo = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, sol.eps, sol.r_eps)
+                stats["refine"] = StageStats("refine", str(rinfo.get("status")), int(rinfo.get("iterations", 0)),
+                                             time.perf_counter() - t3, True,
+                                             {"widen": rinfo.get("widen"), "n_outside": rinfo.get("n_outside", 0)})
+                if rinfo.get("widen", 1.0) > 1.0:
+                    amb.append({"kind": "eps-inconsistent", "patches": [],
+                                "message": f"the eps bounds were mutually infeasible; positions were "
+                                           f"found inside bounds widened x{rinfo['widen']:g}."})
+            except SolverError as exc:
+                stats["refine"] = StageStats("refine", f"failed: {exc.status}", 0,
+                                             time.perf_counter() - t3, False)
+                raise
+    vis_mask = np.ones(M, bool)
+    t4 = time.perf_counter()
+    labels = nm.plane_groups(X) if M >= 6 else np.full(M, -1)
+    normals = nm.estimate_normals(X, visible=vis_mask, camera=cam if frame == "capture" else np.zeros(3),
+                                  labels=labels) if M >= 3 else np.full((M, 3), np.nan)
+    stats["normals"] = StageStats("normals", "ok", 0, time.perf_counter() - t4, True,
+                                  {"n_planes": int(len(np.unique(labels[labels >= 0])))})
+    # hidden patches
+    hid_pos = np.zeros((0, 3))
+    hid_std = np.zeros((0, 3))
+    hdb = []
+    if third:
+        t5 = time.perf_counter()
+        rd = {int(i): float(sol.r[k]) for k, i in enumerate(ids)}
+        cd = {int(i): float(sol.c[k]) for k, i in enumerate(ids)}
+        exc_on = hm.excess_onsets(third, ids, rd, cd)
+        if exc_on:
+            z = dm.eps_quantile(st.eps_level)
+            W = tmpl.width if tmpl is not None else w
+            if st.hidden_method == "paper":
+                n_h = hidden if hidden is not None else max(len(v[0]) for (a, b), v in exc_on.items() if a == b)
+                res = hm.label_paper(exc_on, X, ids, n_h, level_z=z, floor=st.onset_floor_bins * w,
+                                     camera=cam if frame == "capture" else np.zeros(3))
+            else:
+                res = hm.label_robust(exc_on, X, ids, n_hidden=hidden, tol_floor=0.5 * W, level_z=z,
+                                      floor=st.onset_floor_bins * w,
+                                      camera=cam if frame == "capture" else np.zeros(3))
+            hid_pos, hid_std = res["positions"], res["position_std"]
+            amb.extend(res["ambiguities"])
+            base = int(max(ids.max(), capture.ill_ids().max(), capture.obs_ids().max())) + 1
+            for k in range(len(hid_pos)):
+                hdb.append({"id": base + k, "visible_ids": ids.tolist(), "distances": res["h"][k],
+                            "eps": res["h_eps"][k]})
+            stats["hidden"] = StageStats("hidden", "ok", 0, time.perf_counter() - t5, True,
+                                         {"method": res["method"], "n_hidden": int(len(hid_pos)),
+                                          "edm_rank_score": res.get("edm_rank_score")})
+    K = len(hid_pos)
+    base = int(max(ids.max(), capture.ill_ids().max(), capture.obs_ids().max())) + 1
+    all_ids = np.concatenate([ids, base + np.arange(K)])
+    P = np.vstack([X, hid_pos]) if K else X
+    Dfull = np.full((M + K, M + K), np.nan)
+    Efull = np.full((M + K, M + K), np.inf)
+    Dfull[:M, :M], Efull[:M, :M] = sol.D, sol.eps
+    for k, b in enumerate(hdb):
+        Dfull[M + k, :M] = Dfull[:M, M + k] = b["distances"]
+        Efull[M + k, :M] = Efull[:M, M + k] = b["eps"]
+        Dfull[M + k, M + k], Efull[M + k, M + k] = 0.0, 0.0
+    hn = np.full((K, 3), np.nan)
+    if K:
+        # a hidden patch faces the visible ones it lights
+        v = X.mean(axis=0)[None, :] - hid_pos
+        hn = v / np.maximum(np.linalg.norm(v, axis=1), 1e-12)[:, None]
+    est = GeometryEstimate(
+        ids=all_ids, positions=P, visible=np.concatenate([vis_mask, np.zeros(K, bool)]),
+        normals=np.vstack([normals, hn]) if K else normals, distances=Dfull, eps=Efull,
+        position_std=np.vstack([np.full((M, 3), np.nan), hid_std]) if K else None,
+        hidden_distance_bounds=hdb, source_xyz=src if frame == "capture" else np.zeros(3),
+        camera_xyz=cam if frame == "capture" else np.zeros(3), frame=frame,
+        plane_labels=np.concatenate([labels, -np.ones(K, int)]),
+        onsets={"ill_ids": ill, "obs_ids": obs, "O": O, "O_std": S, "snr": snr,
+                "r": sol.r, "r_std": sol.r_std, "third": third},
+        stats=stats, ambiguities=amb, eps_level=st.eps_level)
+    return est
