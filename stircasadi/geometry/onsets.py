@@ -318,10 +318,11 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
         cov = np.full((n, 3, 3), np.nan)
     var_tau = cov[:, 1, 1]
     if poisson:
-        amp = p[:, 0]
-        bg = p[:, 2]
+        amp = p[:, 0] * scale
+        bg = p[:, 2] * scale
         chi2 = cost / dof
-        s_noise = np.sqrt(np.maximum(amp, 1.0))
+        g_pk = float(tmpl.pulse(np.zeros(1))[0][0]) if model == "pulse" else 1.0
+        s_noise = np.sqrt(np.maximum(amp * g_pk + bg, 1.0))
     else:
         s2 = cost / dof  # residual variance in scaled units
         if sigma_noise is not None:
