@@ -295,7 +295,7 @@ class ReflectanceNLP:
                 lbg += (D - eps).tolist()
                 ubg += (D + eps).tolist()
                 names += [f"distance[{m.names[h]},{m.names[v_]}]" for v_ in vs]
-        self.g = ca.vertcat(*g) if g else ca.MX(0, 1)
+        self.g = ca.densify(ca.vertcat(*g)) if g else ca.MX(0, 1)  # IPOPT needs a dense g
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
         self.g_names = names
 
