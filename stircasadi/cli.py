@@ -64,19 +64,9 @@ def _estimate(cap, hidden, brdf):
     geo = _geometry_stage(cap, hidden)
     if geo is None:
         raise StircasadiError("The geometry stage (stircasadi.geometry) is not available in this build.")
-    result = geo.to_json_dict()
     est = _reflectance_stage(cap, geo, brdf)
-    if est is not None:
-        result = est.to_json_dict(base=result) if _accepts_base(est) else {**result, **est.to_json_dict()}
+    result = est.to_json_dict(geo) if est is not None else geo.to_json_dict()
     return geo, est, result
-
-
-def _accepts_base(est) -> bool:
-    import inspect
-    try:
-        return "base" in inspect.signature(est.to_json_dict).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 def _failed(result: dict) -> bool:
@@ -139,18 +129,16 @@ def cmd_run(args) -> int:
         print(f"solver failed: {exc}", file=sys.stderr)
         code = 2
     truth = cap.truth
+    if geo is not None:
+        from .geometry import report_table as geometry_table
+        print(geometry_table(geo, truth))
     if est is not None:
         from .estimate.pipeline import report_table
-        print(report_table(est, truth))
-    elif geo is not None:
-        from .geometry import report_table
-        print(report_table(geo, truth))
-    else:
+        print(report_table(est, truth, timings=timings))
+    if geo is None:
         print("(estimators not available in this build: simulation only)")
     if geo is not None:
-        result = geo.to_json_dict()
-        if est is not None:
-            result = est.to_json_dict(base=result) if _accepts_base(est) else {**result, **est.to_json_dict()}
+        result = est.to_json_dict(geo) if est is not None else geo.to_json_dict()
         (out / "estimate.json").write_text(json.dumps(result, indent=2, default=_json_default))
         if _failed(result):
             code = 1
