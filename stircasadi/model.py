@@ -44,8 +44,10 @@ What it neglects
 ----------------
 Everything the forward model neglects (small patches, no polarisation...), plus: bounces beyond
 K; mirrors (a ``Mirror`` patch raises ``ModelError``); occlusion changes as hidden patches move
-(visibility is computed once, at the initial geometry); hidden-patch normals are fixed (taken
-from the geometry stage). The albedo and the area of a hidden patch enter third bounces only as
+(visibility is computed once, at the initial geometry, also when normals rotate). Normals are
+fixed unless declared unknown as rotations of the given normal n0 (``"tilt"``: angle a about a
+per-patch axis ax perpendicular to n0, set with ``set_tilt_axes``; ``"tilt2"``: angle b toward
+ax), n = cos b (cos a n0 + sin a ax x n0) + sin b ax. The albedo and the area of a hidden patch enter third bounces only as
 the product ``albedo * area``: the model takes areas as known, and the albedo it recovers is
 only as good as the area it is given.
 """
@@ -72,6 +74,10 @@ PARAMETERS = {
     "exponent": {"lower": 0.0, "upper": 500.0, "scale": 10.0, "width": 1},
     "position": {"lower": -np.inf, "upper": np.inf, "scale": 0.01, "width": 3},
     "distance": {"lower": 0.0, "upper": np.inf, "scale": 0.01, "width": 2},
+    # normal rotations (radians): n = cos(b) (cos(a) n0 + sin(a) (ax x n0)) + sin(b) ax, with
+    # a = tilt about the patch's tilt axis ax (perpendicular to n0) and b = tilt2 toward ax
+    "tilt": {"lower": -math.radians(80.0), "upper": math.radians(80.0), "scale": 1.0, "width": 1},
+    "tilt2": {"lower": -math.radians(80.0), "upper": math.radians(80.0), "scale": 1.0, "width": 1},
 }
 
 _SQRT2 = math.sqrt(2.0)
@@ -220,6 +226,7 @@ class TransientModel:
             self._params[name] = _Param(name, val, np.zeros(M, bool), np.full(shp, spec["lower"]),
                                         np.full(shp, spec["upper"]), np.full(shp, spec["scale"]),
                                         np.zeros(shp))
+        self.tilt_axis = np.array([_perpendicular(v) for v in self.normals])  # see set_tilt_axes
         self.anchors = -np.ones((M, 2), int)   # visible anchor patches of distance-parameterised patches
         self.anchor_dir = np.zeros((M, 3))      # fixed unit direction of the circle point (see set_hidden_distances)
         self.ids = None
@@ -340,6 +347,44 @@ class TransientModel:
         D.offset[k] = d0
         D.free[k] = True
         return self
+
+    def set_tilt_axes(self, patches, axis) -> "TransientModel":
+        """Rotation axes of the normal unknowns ``"tilt"`` / ``"tilt2"`` on ``patches``.
+
+        ``axis`` ((3,) or (k, 3)) is projected perpendicular to each patch's initial normal n0
+        and normalised; ``tilt`` rotates n0 about it (n0 stays perpendicular to the axis), and
+        ``tilt2`` tilts the normal toward it. Flatland scenes: the plane's normal, so that ``tilt``
+        is the in-plane angle. Default axis: any unit vector perpendicular to n0.
+        """
+        self._check_open("set_tilt_axes")
+        sel = np.flatnonzero(self._patch_mask(patches))
+        ax = np.array(np.broadcast_to(np.asarray(axis, float), (len(sel), 3)))
+        for i, k in enumerate(sel):
+            v = ax[i] - np.dot(ax[i], self.normals[k]) * self.normals[k]
+            nv = np.linalg.norm(v)
+            if not np.isfinite(nv) or nv < 1e-6 * max(np.linalg.norm(ax[i]), 1e-300):
+                raise ModelError(f"The tilt axis {ax[i].tolist()} of patch {k} ({self.names[k]}) is "
+                                 f"parallel to its normal {self.normals[k].tolist()} (or not finite): a "
+                                 "rotation about it leaves the normal unchanged. Give an axis "
+                                 "perpendicular to the normal (flatland: the plane's normal).")
+            self.tilt_axis[k] = v / nv
+        return self
+
+    def rotated_normals(self, tilt, tilt2):
+        """Normals (M, 3) at tilt angles ``tilt``, ``tilt2`` ((M,) radians); NumPy or CasADi (3, M).
+
+        The one formula for both: CasADi inputs give a (3, M) MX of columns, NumPy an (M, 3) array.
+        """
+        n0, ax = self.normals, self.tilt_axis
+        u = np.cross(ax, n0)
+        if isinstance(tilt, (ca.MX, ca.SX)) or isinstance(tilt2, (ca.MX, ca.SX)):
+            a, b = ca.reshape(tilt, 1, self.M), ca.reshape(tilt2, 1, self.M)
+            ca_, sa, cb, sb = ca.cos(a), ca.sin(a), ca.cos(b), ca.sin(b)
+            rep = lambda v: ca.repmat(v, 3, 1)  # noqa: E731
+            return rep(cb) * (rep(ca_) * ca.DM(n0.T) + rep(sa) * ca.DM(u.T)) + rep(sb) * ca.DM(ax.T)
+        a = np.asarray(tilt, float)[:, None]
+        b = np.asarray(tilt2, float)[:, None]
+        return np.cos(b) * (np.cos(a) * n0 + np.sin(a) * u) + np.sin(b) * ax
 
     def set_general_brdf(self, patches, upper: float = 10.0 / math.pi,
                          scale: float = 1.0 / math.pi) -> "TransientModel":
@@ -518,7 +563,16 @@ class TransientModel:
             for k in dfree:
                 cols[k] = self._trilaterate(k, out["distance"][0, k], out["distance"][1, k])
             out["position"] = ca.horzcat(*cols)
+        if self.tilt_free.any():
+            out["normal"] = self.rotated_normals(out["tilt"], out["tilt2"])
+        else:
+            out["normal"] = ca.MX(ca.DM(self.normals.T))
         return out
+
+    @property
+    def tilt_free(self) -> np.ndarray:
+        """(M,) bool: patches whose normal is unknown (``tilt`` or ``tilt2``)."""
+        return self._params["tilt"].free | self._params["tilt2"].free
 
     def _trilaterate(self, k, d1, d2):
         """Position of a distance-parameterised patch (see ``set_hidden_distances``); NumPy or CasADi."""
@@ -535,7 +589,8 @@ class TransientModel:
         return z[a1] + xx * e + r * self.anchor_dir[k]
 
     def theta(self, x) -> dict:
-        """Numeric parameter values (albedo, specular, exponent: (M,); position: (M, 3)) at x."""
+        """Numeric parameter values (albedo, specular, exponent, tilt, tilt2: (M,); position: (M, 3))
+        at x, and the resulting unit ``normal`` (M, 3)."""
         self._require_setup("theta()")
         x = np.asarray(x, float).ravel()
         out = {n: P.value.copy() for n, P in self._params.items()}
@@ -547,6 +602,7 @@ class TransientModel:
                 out[n][k, c] = v
         for k in np.flatnonzero(self._params["distance"].free):
             out["position"][k] = self._trilaterate(k, out["distance"][k, 0], out["distance"][k, 1])
+        out["normal"] = self.rotated_normals(out["tilt"], out["tilt2"])
         return out
 
     def x_of(self, values: dict) -> np.ndarray:
@@ -641,7 +697,7 @@ class TransientModel:
     def _path_amp_tau(self, verts, th):
         """Symbolic (1, P) amplitude and delay of paths ``verts`` (P, n) with parameters ``th``."""
         Z = th["position"]                       # (3, M) MX
-        N = self.normals
+        N = th["normal"]                         # (3, M) MX (constant unless tilts are free)
         P_, n = verts.shape
         alb, spec, expo = th["albedo"], th["specular"], th["exponent"]
         zs = [Z[:, verts[:, m].tolist()] for m in range(n)]
@@ -669,7 +725,7 @@ class TransientModel:
         amp = ca.DM(source_irradiance(self.phi, self.areas[verts[:, 0]])).T
         for m in range(n):
             vk = verts[:, m]
-            nk = ca.DM(N[vk].T)
+            nk = N[:, vk.tolist()]
             ci, co, cio = dot(w_prev[m], nk), dot(w_next[m], nk), dot(w_prev[m], w_next[m])
             rho = alb[vk.tolist()].T
             f = Lambertian.formula(ci, co, cio, rho)
@@ -691,8 +747,8 @@ class TransientModel:
         tau = ca.DM.zeros(1, P_)
         for m, (u, d) in enumerate(legs):
             a_src = ca.DM(self.areas[verts[:, m]]).T
-            c_src = dot(u, ca.DM(N[verts[:, m]].T))
-            c_dst = -dot(u, ca.DM(N[verts[:, m + 1]].T))
+            c_src = dot(u, N[:, verts[:, m].tolist()])
+            c_dst = -dot(u, N[:, verts[:, m + 1].tolist()])
             amp = amp * form_factor(a_src, c_src, c_dst, d)
             tau = tau + d
         if self.legs_included:
@@ -809,13 +865,21 @@ class TransientModel:
         v = zr - zh
         d = ca.sqrt(ca.sum1(v * v))
         u = v / ca.repmat(d, 3, 1)
-        ch = ca.sum1(u * ca.DM(self.normals[h].T))
-        cr = -ca.sum1(u * ca.DM(self.normals[r].T))
+        N = th["normal"] if "normal" in th else ca.DM(self.normals.T)
+        ch = ca.sum1(u * N[:, h.tolist()])
+        cr = -ca.sum1(u * N[:, r.tolist()])
         F = form_factor(ca.DM(self.areas[r]).T, ch, cr, d) / math.pi
         refl = th["albedo"] + th["specular"] * ca.DM(self.glossy.astype(float))
         terms = F * refl[r.tolist()].T
         S = ca.DM(ca.Sparsity.triplet(self.M, len(h), h.tolist(), list(range(len(h)))), np.ones(len(h)))
         return ca.mtimes(S, terms.T)
+
+
+def _perpendicular(n):
+    """A unit vector perpendicular to the unit vector n (the default tilt axis)."""
+    e = np.eye(3)[int(np.argmin(np.abs(n)))]
+    v = e - np.dot(e, n) * n
+    return v / np.linalg.norm(v)
 
 
 def _facing(z, n):

@@ -62,8 +62,9 @@ class Estimate:
         theta = m.theta(x[:m.n_x])
         std = {n: np.full_like(v, np.nan, dtype=float) for n, v in theta.items()}
         ident = {n: np.ones(len(v), bool) for n, v in theta.items()}
-        free = {n: m.param(n).free.copy() for n in theta}
+        free = {n: m.param(n).free.copy() for n in theta if n != "normal"}
         free["position"] = free["position"] | free["distance"]
+        free["normal"] = m.tilt_free.copy()
         flags = []
         unc = None
         if nlp.settings.uncertainty.compute:
@@ -77,6 +78,8 @@ class Estimate:
                 if not unc["identifiable"][j]:
                     ident[n][k] = False
             for n in theta:
+                if n == "normal":
+                    continue
                 for k in np.flatnonzero(~ident[n]):
                     what = m._triple_name(k) if n == "fkij" else f"{n} of patch {m.names[k]}"
                     flags.append(f"{what} is not identifiable from the data "
@@ -84,6 +87,10 @@ class Estimate:
             for k, sp in unc["position_std_from_distances"].items():
                 std["position"][k] = sp if ident["distance"][k] else np.inf
                 ident["position"][k] = ident["distance"][k]
+            for k, sn in unc["normal_std"].items():
+                ok = bool(ident["tilt"][k] and ident["tilt2"][k])
+                std["normal"][k] = sn if ok else np.inf
+                ident["normal"][k] = ok
             for j in np.flatnonzero(unc["at_bound"][:m.n_x]):
                 flags.append(f"{m.x_names[j]} sits on a bound: its interval is the unconstrained one.")
             corr = unc["corr"]
@@ -111,7 +118,7 @@ class Estimate:
                    corr=corr, success=bool(info.get("success")), status=str(info.get("status")),
                    iterations=int(info.get("iterations", -1)), solver=solver, timings=timings,
                    cost=float(info.get("cost", np.nan)), sigma=float(nlp.sigma), ids=ids,
-                   visible=visible, names=list(m.names), normals=m.normals.copy(), glossy=m.glossy.copy(), info=dict(info),
+                   visible=visible, names=list(m.names), normals=np.asarray(theta["normal"]).copy(), glossy=m.glossy.copy(), info=dict(info),
                    warm_start=warm_start, flags=flags, extra=extra)
 
     # ------------------------------------------------------------------ views

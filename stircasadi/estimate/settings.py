@@ -177,6 +177,8 @@ class UncertaintySettings:
     max_rel_std: float = 0.5
     """A BRDF parameter whose std exceeds this fraction of its allowed range (albedo: of 1) is
     flagged unidentifiable."""
+    max_tilt_std_deg: float = 20.0
+    """A normal rotation (``tilt``/``tilt2``) whose std exceeds this many degrees is unidentifiable."""
     max_position_std: float | None = None
     """A position std (metres) above this is flagged; None: the hidden eps."""
     null_tol: float = 1e-10
@@ -185,6 +187,7 @@ class UncertaintySettings:
 
     def validate(self) -> "UncertaintySettings":
         _positive("max_rel_std", self.max_rel_std)
+        _positive("max_tilt_std_deg", self.max_tilt_std_deg)
         _positive("null_tol", self.null_tol)
         return self
 

@@ -96,10 +96,13 @@ def fisher_uncertainty(nlp, x) -> dict:
             ident[j] = std_theta[j] <= us.max_rel_std * max(abs(theta_vals[j]), m.x_scale[j])
         elif name in ("position", "distance"):
             ident[j] = std_theta[j] <= eps_pos
+        elif name in ("tilt", "tilt2"):
+            ident[j] = std_theta[j] <= np.radians(us.max_tilt_std_deg)
     tol = 1e-6
     at_bound = (x <= nlp.lbx + tol) | (x >= nlp.ubx - tol)
     pos_std = _distance_position_std(m, x, cov)
-    return {"position_std_from_distances": pos_std, "cov_x": cov, "std_x": std_x, "std_theta": std_theta, "corr": corr, "eigvals": ev,
+    nrm_std = _normal_std(m, x, cov)
+    return {"position_std_from_distances": pos_std, "normal_std": nrm_std, "cov_x": cov, "std_x": std_x, "std_theta": std_theta, "corr": corr, "eigvals": ev,
             "null_dim": int(null.sum()), "identifiable": ident, "at_bound": at_bound,
             "sigma_used": float(sigma_used)}
 
@@ -125,4 +128,27 @@ def _distance_position_std(m, x, cov) -> dict:
         S = np.diag(m.x_scale[js])
         C = S @ cov[np.ix_(js, js)] @ S
         out[int(k)] = np.sqrt(np.clip(np.diag(Jp @ C @ Jp.T), 0, None))
+    return out
+
+
+def _normal_std(m, x, cov) -> dict:
+    """Normal std (3,) of patches with free tilts: J_n Cov(tilt, tilt2) J_n^T (analytic J_n)."""
+    out = {}
+    th = m.theta(x[:m.n_x])
+    n0, ax = m.normals, m.tilt_axis
+    u = np.cross(ax, n0)
+    for k in np.flatnonzero(m.tilt_free):
+        a, b = th["tilt"][k], th["tilt2"][k]
+        dn_da = np.cos(b) * (-np.sin(a) * n0[k] + np.cos(a) * u[k])
+        dn_db = -np.sin(b) * (np.cos(a) * n0[k] + np.sin(a) * u[k]) + np.cos(b) * ax[k]
+        cols, js = [], []
+        for name, dn in (("tilt", dn_da), ("tilt2", dn_db)):
+            j = [i for i, (n, kk, c) in enumerate(m.blocks) if n == name and kk == k]
+            if j:
+                cols.append(dn)
+                js.append(j[0])
+        J = np.array(cols).T                       # (3, p)
+        S = np.diag(m.x_scale[js])
+        C = S @ cov[np.ix_(js, js)] @ S
+        out[int(k)] = np.sqrt(np.clip(np.diag(J @ C @ J.T), 0, None))
     return out
