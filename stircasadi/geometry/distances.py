@@ -90,10 +90,30 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
     nq = M if colocated else 2 * M
 
     def a_vec(i, j):
-        a = np.zeros(nq)
-        a[pos[i]] += 1.0
-        a[pos[j] if colocated else M + pos[j]] += 1.0
+        """Sparse row of T2 for the leg unknowns: {index: coefficient}."""
+        a: dict = {}
+        for k in (pos[i], pos[j] if colocated else M + pos[j]):
+            a[k] = a.get(k, 0.0) + 1.0
         return a
+
+    def add_outer(Nm, a, b, w):
+        for p_, x_ in a.items():
+            for q_, y_ in b.items():
+                Nm[p_, q_] += w * x_ * y_
+
+    def add_vec(v, a, w):
+        for p_, x_ in a.items():
+            v[p_] += w * x_
+
+    def dot(a, v):
+        return sum(x_ * v[p_] for p_, x_ in a.items())
+
+    def combine(items):
+        out: dict = {}
+        for a, w in items:
+            for p_, x_ in a.items():
+                out[p_] = out.get(p_, 0.0) + w * x_
+        return out
 
     S = np.where(np.isfinite(S) & (S > 0), np.sqrt(np.maximum(S, 0) ** 2 + floor ** 2), np.nan)
     O = np.array(O, float)
@@ -137,20 +157,20 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
             if i == j:
                 a = a_vec(i, j)
                 w = 1.0 / s ** 2
-                N += w * np.outer(a, a)
-                b += w * a * o
+                add_outer(N, a, a, w)
+                add_vec(b, a, w * o)
             else:
                 key = (min(i, j), max(i, j))
                 pair_eqs.setdefault(key, []).append((a_vec(i, j), o, 1.0 / s ** 2))
     for eqs in pair_eqs.values():
         Wd = sum(w for _, _, w in eqs)
-        sa = sum(w * a for a, _, w in eqs)
+        sa = combine([(a, w) for a, _, w in eqs])
         so = sum(w * o for _, o, w in eqs)
         for a, o, w in eqs:
-            N += w * np.outer(a, a)
-            b += w * a * o
-        N -= np.outer(sa, sa) / Wd
-        b -= sa * so / Wd
+            add_outer(N, a, a, w)
+            add_vec(b, a, w * o)
+        add_outer(N, sa, sa, -1.0 / Wd)
+        add_vec(b, sa, -so / Wd)
     # pseudo-inverse with explicit null space
     evals, evecs = np.linalg.eigh(N)
     tol = max(evals.max(), 1e-300) * 1e-12
@@ -160,14 +180,20 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
     q = Ninv @ b
 
     def var_of(k):
-        if null.size and np.linalg.norm(null.T @ k) > 1e-6 * max(np.linalg.norm(k), 1e-300):
+        if isinstance(k, dict):
+            idx = np.array(list(k.keys()), dtype=int)
+            val = np.array(list(k.values()), dtype=float)
+        else:
+            idx = np.flatnonzero(k)
+            val = k[idx]
+        if null.size and np.linalg.norm(null[idx].T @ val) > 1e-6 * max(np.linalg.norm(val), 1e-300):
             return np.inf
-        return float(k @ Ninv @ k)
+        return float(val @ Ninv[np.ix_(idx, idx)] @ val)
 
     r = q[:M]
     cc = q[:M] if colocated else q[M:]
-    r_var = np.array([var_of(np.eye(nq)[k]) for k in range(M)])
-    c_var = r_var if colocated else np.array([var_of(np.eye(nq)[M + k]) for k in range(M)])
+    r_var = np.array([var_of({k: 1.0}) for k in range(M)])
+    c_var = r_var if colocated else np.array([var_of({M + k: 1.0}) for k in range(M)])
     D = np.full((M, M), np.nan)
     V = np.full((M, M), np.inf)
     np.fill_diagonal(D, 0.0)
@@ -175,14 +201,14 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
     chi2 = 0.0
     for (i, j), eqs in pair_eqs.items():
         Wd = sum(w for _, _, w in eqs)
-        d = sum(w * (o - a @ q) for a, o, w in eqs) / Wd
-        k = sum(w * a for a, _, w in eqs) / Wd
+        d = sum(w * (o - dot(a, q)) for a, o, w in eqs) / Wd
+        k = {p_: x_ / Wd for p_, x_ in combine([(a, w) for a, _, w in eqs]).items()}
         v = 1.0 / Wd + var_of(k)
         if len(eqs) == 1 and not colocated:
             v = np.inf  # one-way onset with separate legs: d not identified
         D[pos[i], pos[j]] = D[pos[j], pos[i]] = d
         V[pos[i], pos[j]] = V[pos[j], pos[i]] = v
-        chi2 += sum(w * (o - a @ q - d) ** 2 for a, o, w in eqs)
+        chi2 += sum(w * (o - dot(a, q) - d) ** 2 for a, o, w in eqs)
     # rows with no first onset leave r undetermined in the co-located case
     r = np.where(np.isfinite(r_var), r, np.nan)
     cc = np.where(np.isfinite(c_var), cc, np.nan)
