@@ -76,13 +76,6 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     pos = np.asarray(g.positions, float)
     vis = np.asarray(g.visible, bool)
     nor = np.array(g.normals, float)
-    cen = pos[vis].mean(axis=0) if vis.any() else np.zeros(3)
-    for k in range(M):
-        if not np.all(np.isfinite(nor[k])):
-            d = cen - pos[k]
-            nor[k] = d / np.linalg.norm(d)
-    nor /= np.linalg.norm(nor, axis=1)[:, None]
-
     def index(pid, what):
         hit = np.flatnonzero(ids == pid)
         if not hit.size:
@@ -99,6 +92,11 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     irf = irf_from_samples(capture.irf, capture.grid.bin_width)
     src = g.source_xyz if g.source_xyz is not None else (capture.source_xyz if capture.source_xyz is not None else np.zeros(3))
     cam = g.camera_xyz if g.camera_xyz is not None else (capture.camera_xyz if capture.camera_xyz is not None else src)
+    hidden = np.flatnonzero(~vis)
+    anchors = np.union1d(ill, obs)
+    degenerate = _degenerate_hidden(g, pos, hidden, anchors, ids, settings, capture.grid.bin_width)
+    nor, tilt_plan, normal_source = _initial_normals(nor, pos, vis, ids, anchors, src, cam, degenerate,
+                                                     settings)
     y = capture.stir
     alb0 = np.full(M, 0.5)
     phi = 1.0
@@ -122,11 +120,16 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     model.set_unknown("albedo", "all")
     if brdf == "phong":
         model.set_unknown("specular", "glossy").set_unknown("exponent", "glossy", upper=200.0)
-    hidden = np.flatnonzero(~vis)
+    for k, (axis, two, lo, hi) in tilt_plan.items():
+        model.set_tilt_axes([k], axis)
+        model.set_unknown("tilt", [k], lower=lo, upper=hi)
+        if two:
+            model.set_unknown("tilt2", [k])
     eps_used = {}
     if settings.estimate_hidden_geometry and len(hidden):
-        anchors = np.union1d(ill, obs)
         for h in hidden:
+            if int(ids[h]) in degenerate:
+                continue  # geometry fixed at the geometry stage's point; flagged below
             eps = _hidden_eps(g, ids[h], settings, capture.grid.bin_width)
             eps_used[int(ids[h])] = eps
             if len(anchors) >= 3:
@@ -147,7 +150,15 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     est.timings["geometry_s"] = t_geo
     est.timings["setup_s"] = t_model
     est.extra.update({"areas_source": a_src, "hidden_eps": eps_used, "brdf": brdf,
-                      "irf": irf.describe(), "frame": getattr(g, "frame", None)})
+                      "irf": irf.describe(), "frame": getattr(g, "frame", None),
+                      "normal_source": {int(ids[k]): normal_source[k] for k in range(M)},
+                      "degenerate_hidden": degenerate})
+    for pid, why in degenerate.items():
+        k = int(np.flatnonzero(ids == pid)[0])
+        est.identifiable["position"][k] = False
+        est.std["position"][k] = np.inf
+        est.flags.append(f"hidden patch {model.names[k]} is ambiguous: {why}; its position and normal "
+                         "were fixed at the geometry stage's values (not a result).")
     est.extra["geometry_estimate"] = g
     return est
 
@@ -180,6 +191,132 @@ def _areas(areas, g, capture, pos, vis, ids):
                   "0.01 m^2. Hidden albedos are then only albedo x area / 0.01.", IdentifiabilityWarning,
                   stacklevel=3)
     return np.full(M, 0.01), "default 0.01 m^2"
+
+
+def _degenerate_hidden(g, pos, hidden, anchors, ids, settings, bin_width) -> dict:
+    """Hidden patches whose geometry the data cannot refine: id -> reason.
+
+    With two anchors a hidden patch is placed by its two distances (a circle about the anchor
+    line); a patch on that line (no circle radius: trilateration is singular there), or one whose
+    distance bound is as large as the distance itself (no third-bounce onset really seen: a
+    spurious patch), is degenerate. Its geometry is fixed, not estimated, and it is flagged.
+    """
+    out = {}
+    if len(anchors) != 2:
+        return out
+    a1, a2 = pos[anchors[0]], pos[anchors[1]]
+    L = float(np.linalg.norm(a2 - a1))
+    e = (a2 - a1) / L
+    for h in hidden:
+        v = pos[h] - a1
+        r = float(np.linalg.norm(v - np.dot(v, e) * e))
+        d = np.array([np.linalg.norm(pos[h] - a1), np.linalg.norm(pos[h] - a2)])
+        eps = _hidden_eps(g, ids[h], settings, bin_width)
+        if r <= 1e-6 * max(L, 1.0):
+            out[int(ids[h])] = (f"it lies on the line through the anchors (distance {r:.2g} m): its "
+                                "angle about that line is undefined")
+        elif eps >= d.min():
+            out[int(ids[h])] = (f"its distance bound ({eps:.3g} m) is not smaller than its distance to "
+                                f"a visible patch ({d.min():.3g} m): it may be spurious")
+    return out
+
+
+def _initial_normals(nor, pos, vis, ids, anchors, src, cam, degenerate, settings):
+    """Initial normals and which ones to estimate.
+
+    Missing (NaN) normals start facing the camera (visible patches: the camera sees them) or the
+    visible centroid (hidden patches: they send light to the wall). Which normals are freed is
+    ``settings.estimate_normals`` (default ``"missing"``: the NaN ones). Rotation axes:
+
+    * two anchors (flatland: the source and the two anchors span a plane holding the hidden
+      patches, as the geometry stage places them): one in-plane angle about the plane's normal.
+      The out-of-plane tilt of a hidden patch only scales all its paths like the albedo does
+      (it sees two points), so it is not estimated; freed normals are projected into the plane.
+    * two anchors, hidden patch off that plane (3-D): one angle about the normal of the plane
+      through the patch and the two anchors (the component of the normal the two anchors see);
+      visible patches about the (source, anchors) plane's normal.
+    * three or more anchors: two angles (``tilt`` and ``tilt2`` about two orthogonal axes).
+
+    Returns (normals (M, 3), {k: (axis, two_angles)}, [source string per patch]).
+    """
+    M = len(pos)
+    nor = np.array(nor, float)
+    missing = ~np.all(np.isfinite(nor), axis=1)
+    cen = pos[vis].mean(axis=0) if vis.any() else np.zeros(3)
+    for k in np.flatnonzero(missing):
+        d = (cam - pos[k]) if vis[k] else (cen - pos[k])
+        nor[k] = d / np.linalg.norm(d)
+    nor /= np.linalg.norm(nor, axis=1)[:, None]
+    mode = getattr(settings, "estimate_normals", "missing")
+    free = {"none": np.zeros(M, bool), "missing": missing, "hidden": missing | ~vis,
+            "all": np.ones(M, bool)}[mode]
+    for pid in degenerate:
+        free[np.flatnonzero(ids == pid)] = False
+    plane = None
+    if len(anchors) == 2:
+        p = np.cross(pos[anchors[0]] - src, pos[anchors[1]] - src)
+        if np.linalg.norm(p) > 1e-9:
+            plane = p / np.linalg.norm(p)
+    plan, source = {}, []
+    for k in range(M):
+        if not free[k]:
+            source.append(("assumed (facing the camera)" if vis[k] else "assumed (facing the visible centroid)")
+                          if missing[k] else ("degenerate patch: geometry stage's" if int(ids[k]) in degenerate
+                                              else "geometry stage (fixed)"))
+            continue
+        if len(anchors) >= 3 or plane is None:
+            plan[k] = (None, True)
+            source.append("estimated (two angles)")
+            continue
+        ax = plane
+        if not vis[k] and abs(np.dot(pos[k] - src, plane)) > 1e-6 * max(np.linalg.norm(pos[k] - src), 1.0):
+            q = np.cross(pos[anchors[0]] - pos[k], pos[anchors[1]] - pos[k])
+            ax = q / np.linalg.norm(q)
+            source.append("estimated (in-plane angle toward the anchors; out-of-plane part assumed)")
+        else:
+            source.append("estimated (in-plane angle, flatland)")
+        n_in = nor[k] - np.dot(nor[k], ax) * ax
+        if np.linalg.norm(n_in) < 1e-6:  # start normal along the axis: any in-plane start
+            n_in = np.cross(ax, [0.0, 0.0, 1.0]) if abs(ax[2]) < 0.9 else np.cross(ax, [1.0, 0.0, 0.0])
+        nor[k] = n_in / np.linalg.norm(n_in)
+        # keep the patch facing what the data say it sees (else its paths vanish and the solver
+        # can stall on a flat region): hidden -> both anchors (its third-bounce onsets), visible
+        # -> the camera and the hidden patches found through it
+        tg = (pos[anchors] if not vis[k] else
+              np.vstack([cam[None, :]] + [pos[h][None, :] for h in np.flatnonzero(~vis)
+                                          if int(ids[h]) not in degenerate]))
+        lo, hi = _facing_interval(nor[k], ax, tg - pos[k])
+        plan[k] = (ax, False, lo, hi)
+    out = {}
+    for k, v in plan.items():
+        if v[0] is None:
+            out[k] = (_any_perp(nor[k]), True, None, None)
+        else:
+            out[k] = v
+    return nor, out, source
+
+
+def _facing_interval(n0, ax, targets, margin_deg: float = 2.0, limit_deg: float = 80.0):
+    """Bounds (radians) on the in-plane tilt a keeping cos(n(a), target) > 0 for every target.
+
+    n(a) = cos a n0 + sin a (ax x n0); the cosine to w is |w_in| cos(a - b_w) with
+    b_w = atan2(w . (ax x n0), w . n0), positive for |a - b_w| < 90 deg.
+    """
+    u = np.cross(ax, n0)
+    lo, hi = -np.radians(limit_deg), np.radians(limit_deg)
+    m = np.radians(margin_deg)
+    for w in np.atleast_2d(targets):
+        b = np.arctan2(np.dot(w, u), np.dot(w, n0))
+        lo, hi = max(lo, b - np.pi / 2 + m), min(hi, b + np.pi / 2 - m)
+    if not lo < 0.0 < hi:  # the start does not face every target: keep the default bounds
+        return -np.radians(limit_deg), np.radians(limit_deg)
+    return float(lo), float(hi)
+
+
+def _any_perp(n):
+    e = np.eye(3)[int(np.argmin(np.abs(n)))]
+    v = e - np.dot(e, n) * n
+    return v / np.linalg.norm(v)
 
 
 def _hidden_eps(g, pid, settings, bin_width) -> float:
@@ -230,13 +367,7 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
         R = _kabsch(P, Q) if len(P) >= 3 else np.eye(3)
         aligned = pos @ R.T
         tvis = np.asarray(truth.get("visible", np.ones(len(tpos), bool)), bool)
-        tmatch = np.empty(len(e.ids), int)
-        for k in range(len(e.ids)):
-            if vis[k] and e.ids[k] < len(tpos):
-                tmatch[k] = e.ids[k]
-            else:
-                cand = np.flatnonzero(~tvis) if (~tvis).any() else np.arange(len(tpos))
-                tmatch[k] = cand[np.argmin(np.linalg.norm(tpos[cand] - aligned[k], axis=1))]
+        tmatch = match_hidden_to_truth(aligned, vis, e.ids, tpos, tvis)
     hdr = f"  {'patch':<8}{'parameter':<12}{'true':>12}{'estimate':>12}{'+-sigma':>11}{'error':>11}{'err/sig':>9}"
     lines.append(hdr)
     lines.append("  " + "-" * (len(hdr) - 2))
@@ -249,19 +380,23 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
         z = err / sv if (np.isfinite(err) and sv and np.isfinite(sv) and sv > 0) else np.nan
         lines.append(f"  {name:<8}{par:<12}{_f(tv):>12}{_f(ev):>12}{_f(sv):>11}{_f(err):>11}{_f(z, 2):>9}")
 
+    tnor = np.asarray(truth["normals"], float) if (truth is not None and truth.get("normals") is not None) else None
     for k in range(len(e.ids)):
         nm = e.names[k]
         tk = tmatch[k] if tmatch is not None else None
+        if tk is not None and tk < 0:
+            lines.append(f"  {nm:<8}{'(no truth)':<12}  no true patch near this hidden patch (spurious?)")
+            tk = None
         for par in ("albedo", "specular", "exponent"):
             if par != "albedo" and not e.free[par][k]:
                 continue
             tv = None
-            if truth is not None and par in truth and truth[par] is not None:
+            if tk is not None and par in truth and truth[par] is not None:
                 tv = float(np.asarray(truth[par])[tk])
             row(nm, par, tv, float(e.values[par][k]), float(e.std[par][k]), bool(e.identifiable[par][k]))
         if e.free["position"][k]:
             sp = np.asarray(e.std["position"][k], float)
-            if truth is not None:
+            if tk is not None:
                 pe = np.asarray(e.values["position"][k]) @ R.T - tpos[tk]
                 err = float(np.linalg.norm(pe))
             else:
@@ -271,6 +406,19 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
                              f"{_f(err):>11}{'':>9}   (m; error after frame alignment)")
             else:
                 lines.append(f"  {nm:<8}{'position':<12}{'':>12}{'unidentifiable':>23}")
+        if e.free.get("normal", np.zeros(len(e.ids), bool))[k]:
+            if not e.identifiable["normal"][k]:
+                lines.append(f"  {nm:<8}{'normal':<12}{'':>12}{'unidentifiable':>23}")
+            else:
+                sn = np.asarray(e.std["normal"][k], float)
+                sdeg = float(np.degrees(np.linalg.norm(sn)))   # small-angle std of the direction
+                err = np.nan
+                if tk is not None and tnor is not None:
+                    nv = np.asarray(e.values["normal"][k]) @ R.T
+                    err = float(np.degrees(np.arccos(np.clip(np.dot(nv, tnor[tk]), -1.0, 1.0))))
+                z = err / sdeg if (np.isfinite(err) and sdeg > 0) else np.nan
+                lines.append(f"  {nm:<8}{'normal':<12}{'':>12}{'':>12}{_f(sdeg):>11}{_f(err):>11}{_f(z, 2):>9}"
+                             "   (deg; angle after frame alignment)")
     if e.flags:
         lines.append("  flags:")
         lines += [f"    - {f}" for f in e.flags]
@@ -279,6 +427,31 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
         tm.update(timings)
     lines.append("  time: " + ", ".join(f"{k} {v:.3f} s" for k, v in tm.items()))
     return "\n".join(lines)
+
+
+def match_hidden_to_truth(aligned, vis, ids, tpos, tvis):
+    """Truth index of each estimated patch: visible by id, hidden by position (aligned frame).
+
+    Hidden patches are matched one-to-one to the hidden truth patches by minimal total distance
+    (Hungarian assignment); an estimated hidden patch left over (spurious) gets -1.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    M = len(ids)
+    tmatch = -np.ones(M, int)
+    hid = []
+    for k in range(M):
+        if vis[k] and ids[k] < len(tpos):
+            tmatch[k] = ids[k]
+        else:
+            hid.append(k)
+    cand = np.flatnonzero(~tvis) if (~tvis).any() else np.arange(len(tpos))
+    if hid and len(cand):
+        C = np.linalg.norm(aligned[hid][:, None, :] - tpos[cand][None, :, :], axis=2)
+        r, c = linear_sum_assignment(C)
+        for i, j in zip(r, c):
+            tmatch[hid[i]] = cand[j]
+    return tmatch
 
 
 def _f(v, nd=4):

@@ -169,6 +169,22 @@ class Estimate:
                 p["position_std"] = self.std["position"][k].tolist() if ok else None
                 if not ok:
                     unid.append("position")
+            ns = self.extra.get("normal_source", {}).get(pid)
+            if ns is not None:
+                p["normal_source"] = ns
+            if self.free.get("normal", np.zeros(len(self.ids), bool))[k]:
+                ok = self.identifiable["normal"][k]
+                p["normal"] = self.values["normal"][k].tolist() if ok else None
+                sn = self.std["normal"][k]
+                p["normal_std"] = sn.tolist() if (ok and np.all(np.isfinite(sn))) else None
+                if not ok:
+                    unid.append("normal")
+            elif ns is not None and ns.startswith("assumed"):
+                p["normal"] = self.normals[k].tolist()
+            why = self.extra.get("degenerate_hidden", {}).get(pid)
+            if why is not None:
+                p["ambiguous"] = why
+                unid.append("position")
             if unid:
                 p["unidentifiable"] = unid
             out_patches.append(p)

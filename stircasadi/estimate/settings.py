@@ -202,6 +202,11 @@ class EstimateSettings:
     """Bounce order K of the model; None: 3 with hidden patches, else 2."""
     estimate_hidden_geometry: bool = True
     """Solve hidden positions jointly with the BRDF parameters (else fix them)."""
+    estimate_normals: str = "missing"
+    """Which patch normals to estimate (as rotations of the initial normal): ``"missing"`` (those
+    the geometry estimate gives as NaN), ``"hidden"`` (those and every hidden patch's),
+    ``"all"`` or ``"none"`` (missing ones are then assumed: visible face the camera, hidden the
+    visible centroid)."""
     cost: CostSettings = field(default_factory=CostSettings)
     constraints: ConstraintSettings = field(default_factory=ConstraintSettings)
     ipopt: IpoptSettings = field(default_factory=IpoptSettings)
@@ -210,6 +215,7 @@ class EstimateSettings:
 
     def validate(self) -> "EstimateSettings":
         _choice("solver", self.solver, ("ipopt", "lm"))
+        _choice("estimate_normals", self.estimate_normals, ("missing", "hidden", "all", "none"))
         if self.bounces is not None and (not isinstance(self.bounces, int) or self.bounces < 1):
             raise ModelError(f"bounces must be None or an integer >= 1; got {self.bounces!r}.")
         for f in fields(self):
