@@ -245,6 +245,8 @@ def _initial_normals(nor, pos, vis, ids, anchors, src, cam, degenerate, settings
     cen = pos[vis].mean(axis=0) if vis.any() else np.zeros(3)
     for k in np.flatnonzero(missing):
         d = (cam - pos[k]) if vis[k] else (cen - pos[k])
+        if np.linalg.norm(d) < 1e-9:  # a (spurious) patch at the centroid / camera: any direction
+            d = (cam - pos[k]) if np.linalg.norm(cam - pos[k]) >= 1e-9 else np.array([0.0, 0.0, 1.0])
         nor[k] = d / np.linalg.norm(d)
     nor /= np.linalg.norm(nor, axis=1)[:, None]
     mode = getattr(settings, "estimate_normals", "missing")
