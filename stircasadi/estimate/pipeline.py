@@ -3,8 +3,11 @@
 When to use: ``estimate_reflectance(capture, geometry_estimate)`` is what ``stircasadi estimate``
 and ``stircasadi run`` call after the geometry stage. It
 
-1. builds a ``TransientModel`` on the geometry estimate (positions, normals; hidden patches with
-   a missing normal face the centroid of the visible patches), with the capture's impulse
+1. builds a ``TransientModel`` on the geometry estimate (positions, normals; a missing (NaN)
+   normal starts facing the camera (visible) or the visible centroid (hidden) and is estimated
+   as a bounded rotation, see ``_initial_normals`` and ``settings.estimate_normals``; hidden
+   patches on the anchor line or with a distance bound as large as the distance are fixed and
+   flagged ambiguous, see ``_degenerate_hidden``), with the capture's impulse
    response (a Gaussian fitted to ``capture.irf``) and areas (see below);
 2. declares the albedo of every patch unknown (and, for ``brdf="phong"``, specular and exponent
    of every visible patch), with initial albedos from the steady-state image:
