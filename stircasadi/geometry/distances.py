@@ -14,10 +14,11 @@ O2_ij and O2_ji, so it is eliminated in closed form (Schur complement): the legs
 from an M x M (2M x 2M when s != o) normal matrix N, then
 ``d_ij = sum_e w_e (O_e - a_e . q) / W``, ``W = sum_e w_e``.
 
-Error bound: Var(d_ij) = 1/W + k^T N^+ k (k = sum_e w_e a_e / W), the exact covariance of the
-linear estimator. ``eps_ij = z_p * sqrt(Var(d_ij) + floor^2)`` with z_p the two-sided normal
-quantile of the confidence ``level`` (0.99 -> 2.576) and ``floor`` an allowance for onset model
-error (default 2 % of a bin). The rate at which the truth falls inside +-eps is checked by
+Error bound: every onset std is first widened to sqrt(sigma^2 + floor^2) (``floor``: an
+allowance for onset model error; the pipeline uses 1 % of a bin). Var(d_ij) = 1/W + k^T N^+ k
+(k = sum_e w_e a_e / W) is then the exact covariance of the linear estimator, and
+``eps_ij = z_p * sqrt(Var(d_ij))`` with z_p the two-sided normal quantile of the confidence
+``level`` (0.99 -> 2.576). The rate at which the truth falls inside +-eps is checked by
 Monte Carlo in tests/test_geometry_distances.py. Pairs with no onset (no second bounce, e.g.
 patches facing away) get d = NaN, eps = inf. With s != o the legs have a common null direction
 (r += delta, c -= delta); d is still identified when both O2_ij and O2_ji exist.
