@@ -16,8 +16,9 @@ AREA = 0.01  # 10 cm x 10 cm
 
 
 def build_scene() -> Scene:
-    centres = [(0.30, 0.00, 1.00), (-0.30, 0.10, 1.10), (0.00, -0.30, 0.90)]
-    normals = [(-0.30, 0.00, -1.0), (0.40, 0.00, -1.0), (0.00, 0.50, -1.0)]
+    # every pair faces each other, so all three distances come from second bounces
+    centres = [(0.30, 0.00, 1.00), (-0.30, 0.10, 1.10), (0.00, -0.30, 1.00)]
+    normals = [(-0.50, 0.00, -1.0), (0.40, 0.00, -1.0), (0.00, 0.60, -1.0)]
     return Scene([Patch(c, tuple(unit(n)), AREA, Lambertian(a), name=f"P{k + 1}")
                   for k, (c, n, a) in enumerate(zip(centres, normals, ALBEDOS))], name=NAME)
 
@@ -27,7 +28,7 @@ def build_grid() -> TimeGrid:
 
 
 def build_sensor():
-    return paper_sensor(noise_rel=1e-4)
+    return paper_sensor(noise_rel=1e-5)
 
 
 def truth() -> dict:

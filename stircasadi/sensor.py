@@ -196,11 +196,18 @@ class PoissonNoise:
 
 @dataclass
 class Sensor:
-    """Impulse response + noise + background. ``Sensor()`` is ideal and noise-free."""
+    """Impulse response + noise + background. ``Sensor()`` is ideal and noise-free.
+
+    ``calibrated_camera=True`` models an intrinsically calibrated camera with a depth/normal
+    channel: the Capture then records, for each observed patch, the unit ray direction from the
+    camera (``extras['ray_directions']``) and the surface normal (``extras['observed_normals']``),
+    in the scene's frame. Positions still come from time of flight (distance along each ray).
+    """
 
     irf: IdealIRF | GaussianIRF | ArrayIRF = field(default_factory=IdealIRF)
     noise: GaussianNoise | PoissonNoise | None = None
     background: float = 0.0
+    calibrated_camera: bool = False
 
     def __post_init__(self):
         if not isinstance(self.irf, (IdealIRF, GaussianIRF, ArrayIRF)):
@@ -214,7 +221,7 @@ class Sensor:
     def effects(self) -> dict:
         return {"irf": self.irf.describe(),
                 "noise": "none" if self.noise is None else self.noise.kind,
-                "background": self.background}
+                "background": self.background, "calibrated_camera": self.calibrated_camera}
 
     def irf_samples(self, grid: TimeGrid) -> np.ndarray | None:
         """The impulse response on the grid's bin width, peak at the centre (for the Capture file)."""
@@ -237,6 +244,14 @@ class Sensor:
             noise_attrs["background"] = self.background
         noise_attrs["seed"] = -1 if seed is None else int(seed)
         scene = transient.scene
+        extras = {}
+        if self.calibrated_camera:
+            if scene is None:
+                raise SensorError("calibrated_camera needs the transient's scene to know the rays.")
+            obs = np.asarray(transient.obs_ids)
+            rays = scene.positions[obs] - scene.camera
+            extras["ray_directions"] = rays / np.linalg.norm(rays, axis=1)[:, None]
+            extras["observed_normals"] = scene.normals[obs]
         meta = dict(transient.metadata)
         meta.update(self.effects)
         meta["noise_applied"] = noise_attrs["model"]
@@ -249,5 +264,5 @@ class Sensor:
             truth=scene.truth_dict() if scene is not None else None,
             provenance={"producer": "stircasadi.simulate", "scene": getattr(scene, "name", ""),
                         "method": meta.get("method", ""), "bounces": str(meta.get("bounces", ""))},
-            metadata=meta)
+            extras=extras, metadata=meta)
         return cap

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from problems import glossy_patch, hidden_corner, lambertian_walls
+from stircasadi.capture import Capture
 from stircasadi.errors import IdentifiabilityWarning, ModelError
 from stircasadi.estimate import EstimateSettings, estimate_reflectance, report_table
 from stircasadi.geometry import GeometryEstimate
@@ -93,11 +94,15 @@ def test_missing_areas_warn_and_bad_inputs_raise():
     assert e.extra["areas_source"].startswith("default")
     with pytest.raises(ModelError, match="brdf must be"):
         estimate_reflectance(cap, _geometry(sc), brdf="ward")
-    cap.irf = None
+    cap.irf = None  # no IRF recorded: estimated from the first-bounce returns instead
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        with pytest.raises(ModelError, match="impulse response"):
-            estimate_reflectance(cap, _geometry(sc))
+        e2 = estimate_reflectance(cap, _geometry(sc))
+        assert e2.extra["irf_source"].startswith("estimated")
+        np.testing.assert_allclose(e2.values["albedo"], e.values["albedo"], atol=4 * e.std["albedo"].max())
+        paired = Capture(grid=cap.grid, traces=cap.stir[0], pairs=[[0, j] for j in range(cap.stir.shape[1])])
+        with pytest.raises(ModelError, match="full STIR"):
+            estimate_reflectance(paired, _geometry(sc))
 
 
 def test_hidden_position_branch_with_many_visible_patches():

@@ -9,6 +9,7 @@ from stircasadi.estimate import ReflectanceNLP, solve_ipopt, solve_lm
 from stircasadi.model import TransientModel
 from stircasadi.sensor import GaussianIRF, PoissonNoise, Sensor
 
+from _legacy_scenes import three_patch_right_angle
 from _reflectance_helpers import capture_of, hidden_model, quiet
 
 
@@ -106,7 +107,7 @@ def test_pem_on_white_noise_reduces_to_oem():
 
 def test_pem_whitens_correlated_noise():
     """AR(1) noise (a = 0.8): PEM estimates a and gives honest intervals where OEM is overconfident."""
-    sc, gr, se, tr, _ = capture_of(three_patch, seed=0)
+    sc, gr, se, tr, _ = capture_of(three_patch, seed=0, scene=three_patch_right_angle())
     rng = np.random.default_rng(21)
     s = 2e-3 * tr.stir.max()
     e = np.zeros_like(tr.stir)

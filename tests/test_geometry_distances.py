@@ -34,13 +34,11 @@ def test_three_patch_eps_coverage_monte_carlo():
         tm = tm or on.make_template(cap)
         ill, obs, O, S, _ = on.second_onsets(cap, tm)
         sol = dm.solve_distances(ill, obs, O, S, level=0.99)
-        for (a, b) in ((0, 1), (0, 2)):
-            if np.isfinite(sol.D[a, b]):
+        for (a, b) in ((0, 1), (0, 2), (1, 2)):
+            if np.isfinite(sol.D[a, b]):          # a weak second bounce may go undetected
                 total += 1
                 inside += abs(sol.D[a, b] - Dt[a, b]) <= sol.eps[a, b]
                 z.append((sol.D[a, b] - Dt[a, b]) / sol.D_std[a, b])
-        # P2 and P3 face each other at exactly 90 degrees: no second bounce, flagged unknown
-        assert np.isinf(sol.eps[1, 2])
     assert total >= 200
     rate = inside / total
     assert rate >= 0.96, rate

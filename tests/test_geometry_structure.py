@@ -62,8 +62,11 @@ def test_json_round_trip_and_table(planes):
 
 
 def test_three_patch_missing_distance_is_flagged():
+    """P2 and P3 meet at exactly 90 degrees: no second bounce, the distance is flagged unknown."""
+    from _legacy_scenes import three_patch_right_angle
+
     mod = load_problem("three_patch")
-    sc, g, se = mod.build_scene(), mod.build_grid(), paper_sensor(1e-6)
+    sc, g, se = three_patch_right_angle(), mod.build_grid(), paper_sensor(1e-6)
     est = estimate_geometry(se.capture(simulate(sc, g, sensor=se), seed=0), hidden=0)
     assert np.isinf(est.eps[1, 2]) and np.all(np.isfinite(est.positions))
     assert any(a["kind"] == "underdetermined-embedding" for a in est.ambiguities)

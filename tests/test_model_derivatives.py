@@ -44,7 +44,9 @@ def test_jacobian_hidden_positions_matches_fd():
     h = np.flatnonzero(sc.hidden)
     m.set_unknown("position", h, lower=sc.positions[h] - 0.02, upper=sc.positions[h] + 0.02, scale=0.02)
     m.setup()
-    _check(m, m.x0 + 0.1)
+    # flatland scene: the out-of-plane derivatives are near zero by symmetry, so a step of 1e-6
+    # is round-off limited; 1e-4 keeps the central difference's O(h^2) error below 1e-8
+    _check(m, m.x0 + 0.1, h=1e-4)
 
 
 def test_jacobian_phong_matches_fd_and_is_finite_outside_the_lobe():

@@ -89,10 +89,18 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     ill = np.array([index(p, "illuminated") for p in capture.ill_ids()], int)
     obs = np.array([index(p, "observed") for p in capture.obs_ids()], int)
     a, a_src = _areas(areas, g, capture, pos, vis, ids)
-    if capture.irf is None:
-        raise ModelError("The capture has no impulse response ('irf'); the model needs it to place "
-                         "light in bins. Record or estimate the IRF (stircasadi.geometry.onsets.estimate_irf).")
-    irf = irf_from_samples(capture.irf, capture.grid.bin_width)
+    irf_source = "capture"
+    irf_samples = capture.irf
+    if irf_samples is None:  # estimate it from the first-bounce returns, as the geometry stage does
+        from ..geometry.onsets import estimate_irf
+
+        irf_samples = estimate_irf(capture)
+        irf_source = "estimated from first-bounce returns"
+        if irf_samples is None:
+            raise ModelError("The capture has no impulse response ('irf') and none could be estimated "
+                             "from first-bounce returns (no pulse is observed at its own patch). "
+                             "Record the IRF in the capture (dataset 'irf').")
+    irf = irf_from_samples(irf_samples, capture.grid.bin_width)
     src = g.source_xyz if g.source_xyz is not None else (capture.source_xyz if capture.source_xyz is not None else np.zeros(3))
     cam = g.camera_xyz if g.camera_xyz is not None else (capture.camera_xyz if capture.camera_xyz is not None else src)
     hidden = np.flatnonzero(~vis)
@@ -153,7 +161,7 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
     est.timings["geometry_s"] = t_geo
     est.timings["setup_s"] = t_model
     est.extra.update({"areas_source": a_src, "hidden_eps": eps_used, "brdf": brdf,
-                      "irf": irf.describe(), "frame": getattr(g, "frame", None),
+                      "irf": irf.describe(), "irf_source": irf_source, "frame": getattr(g, "frame", None),
                       "normal_source": {int(ids[k]): normal_source[k] for k in range(M)},
                       "degenerate_hidden": degenerate})
     for pid, why in degenerate.items():

@@ -192,11 +192,23 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
         Dfull[M + k, :M] = Dfull[:M, M + k] = b["distances"]
         Efull[M + k, :M] = Efull[:M, M + k] = b["eps"]
         Dfull[M + k, M + k], Efull[M + k, M + k] = 0.0, 0.0
+    # onsets carry no orientation: a hidden patch's normal is left to the joint (reflectance) NLP,
+    # which estimates it from third-bounce amplitudes where the data identify it
     hn = np.full((K, 3), np.nan)
     if K:
-        # a hidden patch faces the visible ones it lights
-        v = X.mean(axis=0)[None, :] - hid_pos
-        hn = v / np.maximum(np.linalg.norm(v, axis=1), 1e-12)[:, None]
+        amb.append({"kind": "hidden-normals-unmeasured", "patches": (base + np.arange(K)).tolist(),
+                    "message": "onset times do not measure the orientation of hidden patches; their "
+                               "normals are left to the joint NLP (stircasadi.estimate)."})
+    calib = capture.extras.get("observed_normals") if isinstance(capture.extras, dict) else None
+    if calib is not None and frame == "capture":
+        calib = np.asarray(calib, float)
+        obs_known = capture.obs_ids()
+        if calib.shape == (len(obs_known), 3) and np.all(np.isfinite(calib)):
+            for k, i in enumerate(ids):
+                hit = np.flatnonzero(obs_known == i)
+                if hit.size:
+                    normals[k] = calib[hit[0]] / np.linalg.norm(calib[hit[0]])
+            stats["normals"].extra["source"] = "calibrated camera (observed_normals)"
     est = GeometryEstimate(
         ids=all_ids, positions=P, visible=np.concatenate([vis_mask, np.zeros(K, bool)]),
         normals=np.vstack([normals, hn]) if K else normals, distances=Dfull, eps=Efull,
