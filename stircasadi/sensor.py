@@ -44,6 +44,14 @@ from .timegrid import TimeGrid
 _FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 
 
+def _discrete_kernel(irf, bin_width: float) -> tuple[np.ndarray, int]:
+    """Kernel ``h[m] = H((m+1) w) - H(m w)`` over the response's support, and the index of m = 0:
+    how a path at a bin's left edge spreads over bins (integer-delay mode)."""
+    lo, hi = irf.support()
+    m = np.arange(math.floor(lo / bin_width) - 1, math.ceil(hi / bin_width) + 1)
+    return irf.cdf((m + 1) * bin_width) - irf.cdf(m * bin_width), int(-m[0])
+
+
 class IdealIRF:
     """No impulse response: each path lands in the bin that contains it."""
 
@@ -100,10 +108,7 @@ class GaussianIRF:
         return math.sqrt(-2.0 * math.log(tol)) / self.sigma
 
     def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
-        lo, hi = self.support()
-        m = np.arange(math.floor(lo / bin_width) - 1, math.ceil(hi / bin_width) + 1)
-        h = self.cdf((m + 1) * bin_width) - self.cdf(m * bin_width)
-        return h, int(-m[0])
+        return _discrete_kernel(self, bin_width)
 
     def describe(self) -> str:
         return f"gaussian fwhm={self.fwhm:.4g} m"
@@ -143,10 +148,7 @@ class ArrayIRF:
         return (float(xk[0]), float(xk[-1]))
 
     def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
-        lo, hi = self.support()
-        m = np.arange(math.floor(lo / bin_width) - 1, math.ceil(hi / bin_width) + 1)
-        h = self.cdf((m + 1) * bin_width) - self.cdf(m * bin_width)
-        return h, int(-m[0])
+        return _discrete_kernel(self, bin_width)
 
     def describe(self) -> str:
         return f"measured ({len(self.samples)} samples)"

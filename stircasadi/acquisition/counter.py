@@ -38,7 +38,7 @@ from ..constants import ps_to_m
 from ..errors import AcquisitionSettingsError, InstrumentError
 from ..timegrid import TimeGrid
 from .scan import parse_reply
-from .serialio import Port, SerialSettings, instrument_error
+from .serialio import Port, PortDevice, SerialSettings, instrument_error
 
 
 @dataclass
@@ -73,7 +73,7 @@ def decode_histogram(payload: bytes, n_bins: int) -> np.ndarray:
     return np.frombuffer(payload, dtype="<u4").astype(np.float64)
 
 
-class HistogramCounter:
+class HistogramCounter(PortDevice):
     """Driver of the histogramming counter as a STIR detector (context manager)."""
 
     kind = "counter"
@@ -121,15 +121,6 @@ class HistogramCounter:
             raise InstrumentError(f"{p.device}: channels {bad} requested but the counter has "
                                   f"{self.n_channels} (0..{self.n_channels - 1}).")
         return self
-
-    def close(self) -> None:
-        self.port.close()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
 
     @property
     def n_observed(self) -> int:

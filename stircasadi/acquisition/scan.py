@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..errors import AcquisitionSettingsError, InstrumentError
-from .serialio import Port, SerialSettings, instrument_error
+from .serialio import Port, PortDevice, SerialSettings, instrument_error
 
 
 @dataclass
@@ -60,7 +60,7 @@ def parse_reply(device: str, command: str, line: str, expect: list[str]) -> list
     return toks[len(expect):]
 
 
-class ScanController:
+class ScanController(PortDevice):
     """Driver of the galvo scan controller (context manager)."""
 
     def __init__(self, settings: ScanSettings):
@@ -82,15 +82,6 @@ class ScanController:
             return int(rest[0])
         self.n_patches = p.with_retries(npatch, "NPATCH?")
         return self
-
-    def close(self) -> None:
-        self.port.close()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
 
     def load_table(self, angles_deg) -> None:
         """Load the galvo angle table, one ``(x_deg, y_deg)`` per patch."""

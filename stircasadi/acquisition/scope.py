@@ -50,7 +50,7 @@ from ..constants import C
 from ..errors import AcquisitionSettingsError, InstrumentError, TimeGridError
 from ..timegrid import TimeGrid
 from .protocol import preview
-from .serialio import Port, SerialSettings, instrument_error
+from .serialio import Port, PortDevice, SerialSettings, instrument_error
 
 WAVEDESC_LEN = 346
 
@@ -331,7 +331,7 @@ class ScopeSettings:
         return self
 
 
-class Oscilloscope:
+class Oscilloscope(PortDevice):
     """A SCPI oscilloscope as a STIR detector (one channel per observed patch)."""
 
     kind = "oscilloscope"
@@ -352,15 +352,6 @@ class Oscilloscope:
             for cmd in ("CHDR OFF", "CFMT DEF9,WORD,BIN", "CORD LO"):
                 self.port.write(cmd)
         return self
-
-    def close(self) -> None:
-        self.port.close()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
 
     @property
     def n_observed(self) -> int:

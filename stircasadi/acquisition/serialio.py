@@ -132,6 +132,20 @@ def instrument_error(device: str, command: str | None, what: str, received: byte
     return err
 
 
+class PortDevice:
+    """``close()`` and the context-manager protocol for drivers that own ``self.port`` and
+    define ``open()`` (the scope, the scan controller and the counter)."""
+
+    def close(self) -> None:
+        self.port.close()
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 class Port:
     """One open serial link to one instrument (context manager).
 
