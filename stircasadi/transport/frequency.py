@@ -176,7 +176,7 @@ def plan_period(system: TransportSystem, grid: TimeGrid, irf, bounces: int | Non
 
 def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int | None = None,
                     tail_tol: float = 1e-10, max_factor: int = 16, chunk_bytes: float = 2.5e8,
-                    block_bytes: float = 1.5e9, out=None):
+                    block_bytes: float = 4e9, out=None):
     """STIR (n_ill, n_obs, n_bins) by the resolvent (bounces=None) or its K-term Neumann sum.
 
     Memory: the pulses (STIR rows) are processed in blocks so the spectrum held at once stays
@@ -219,14 +219,16 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
         c1 = min(ni, c0 + block)
         sel = (c >= c0) & (c < c1)
         Sb = _DenseBuilder((r[sel], c[sel] - c0, v[sel], l[sel]), (nu, c1 - c0))
-        spec = _spectrum(Sb, Tb, Ob, omega, bounces, nu, c1 - c0, no, chunk_bytes)
+        n_rows = N // 2 + 1 if (integer or m_max <= N // 2) else len(omega)
+        spec = _spectrum(Sb, Tb, Ob, omega, bounces, nu, c1 - c0, no, chunk_bytes, n_rows)
         out[c0:c1] = _to_time(spec, grid, irf, N, P, m_max, G, integer)
     return out, info
 
 
-def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes):
-    """Y(w) for every frequency, shape (F, n_ill_block, n_obs)."""
-    spec = np.zeros((len(omega), ni, no), complex)
+def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows=None):
+    """Y(w) for every frequency, shape (n_rows >= F, n_ill_block, n_obs); rows past F are zero
+    (the padding up to the inverse FFT's length, allocated once)."""
+    spec = np.zeros((max(n_rows or 0, len(omega)), ni, no), complex)
     per_freq = 16 * (3 * nu * nu + 2 * nu * ni + no * nu + no * ni)
     fchunk = max(1, int(chunk_bytes // max(per_freq, 1)))
     diag = np.arange(nu)
@@ -259,12 +261,11 @@ def _to_time(spec, grid, irf, N, P, m_max, G, integer):
         # of the paths whose delay is n bins (no aliasing: N covers every path)
         y = np.moveaxis(sfft.irfft(spec, n=N, axis=0), 0, -1)
         return bin_integer_samples(y, grid, irf)
-    spec *= G[:, None, None]
+    spec[:len(G)] *= G[:, None, None]
     if m_max <= N // 2:
         # Hermitian: y_k = (Z_0 + 2 Re sum_{m>=1} Z_m e^{2 pi i m k / N}) / P  == irfft * N / P
-        if m_max < N // 2:
-            spec = np.concatenate([spec, np.zeros((N // 2 - m_max,) + spec.shape[1:], complex)])
-        y = sfft.irfft(spec, n=N, axis=0)[:grid.n_bins] * (N / P)
+        # (spec already holds N // 2 + 1 rows, zero past m_max)
+        y = sfft.irfft(spec, n=N, axis=0, overwrite_x=True)[:grid.n_bins] * (N / P)
     else:  # frequencies beyond Nyquist fold onto m mod N (a narrow impulse response)
         F = np.zeros((N,) + spec.shape[1:], complex)
         for m in range(1, m_max + 1):
