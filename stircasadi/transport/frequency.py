@@ -179,11 +179,11 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
                     block_bytes: float = 4e9, out=None):
     """STIR (n_ill, n_obs, n_bins) by the resolvent (bounces=None) or its K-term Neumann sum.
 
-    Memory: the pulses (STIR rows) are processed in blocks so the spectrum held at once stays
-    under ``block_bytes``; with ``out`` (any array-like of the STIR's shape: an ``np.memmap`` or
-    an h5py dataset) each block is written there as it is finished, so the working memory is
-    O(M^2 + M T) per pulse of the block rather than the whole STIR. The LU factors are
-    recomputed per block (one block, i.e. no extra work, whenever everything fits).
+    Memory: when the spectrum of every pulse would exceed ``block_bytes``, it is computed
+    frequency chunk by frequency chunk (one LU per frequency, O(M^2) each) into a temporary
+    file, and turned into time traces pulse block by pulse block; with ``out`` (any array-like
+    of the STIR's shape: an ``np.memmap`` or an h5py dataset) each block is written there as it
+    is finished. The working memory is then O(M^2 + block * M * T), never the whole STIR.
     """
     integer = system.delay_mode == "integer"
     if not integer and not getattr(irf, "band_limited", False):
@@ -214,21 +214,30 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
         om = omega[1:]
         G[1:] = irf.fourier(om) * (np.exp(1j * om * w) - 1.0) / (1j * om)
         G *= np.exp(1j * omega * grid.start)
-    r, c, v, l = system.S
-    for c0 in range(0, ni, block):
-        c1 = min(ni, c0 + block)
-        sel = (c >= c0) & (c < c1)
-        Sb = _DenseBuilder((r[sel], c[sel] - c0, v[sel], l[sel]), (nu, c1 - c0))
-        n_rows = N // 2 + 1 if (integer or m_max <= N // 2) else len(omega)
-        spec = _spectrum(Sb, Tb, Ob, omega, bounces, nu, c1 - c0, no, chunk_bytes, n_rows)
-        out[c0:c1] = _to_time(spec, grid, irf, N, P, m_max, G, integer)
+    n_rows = N // 2 + 1 if (integer or m_max <= N // 2) else len(omega)
+    Sb = _DenseBuilder(system.S, (nu, ni))
+    if block >= ni:
+        spec = _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows)
+        out[...] = _to_time(spec, grid, irf, N, P, m_max, G, integer)
+        return out, info
+    import os
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="stircasadi-spec-") as tmp:
+        spec_all = np.lib.format.open_memmap(os.path.join(tmp, "spectrum.npy"), mode="w+",
+                                             dtype=complex, shape=(n_rows, ni, no))
+        _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows, out=spec_all)
+        for c0 in range(0, ni, block):
+            c1 = min(ni, c0 + block)
+            out[c0:c1] = _to_time(np.array(spec_all[:, c0:c1]), grid, irf, N, P, m_max, G, integer)
+        del spec_all
     return out, info
 
 
-def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows=None):
-    """Y(w) for every frequency, shape (n_rows >= F, n_ill_block, n_obs); rows past F are zero
-    (the padding up to the inverse FFT's length, allocated once)."""
-    spec = np.zeros((max(n_rows or 0, len(omega)), ni, no), complex)
+def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows=None, out=None):
+    """Y(w) for every frequency, shape (n_rows >= F, n_ill, n_obs); rows past F are zero (the
+    padding up to the inverse FFT's length, allocated once). Written into ``out`` if given."""
+    spec = np.zeros((max(n_rows or 0, len(omega)), ni, no), complex) if out is None else out
     per_freq = 16 * (3 * nu * nu + 2 * nu * ni + no * nu + no * ni)
     fchunk = max(1, int(chunk_bytes // max(per_freq, 1)))
     diag = np.arange(nu)
