@@ -64,6 +64,12 @@ def _estimate(cap, hidden, brdf):
     geo = _geometry_stage(cap, hidden)
     if geo is None:
         raise StircasadiError("The geometry stage (stircasadi.geometry) is not available in this build.")
+    if not cap.is_full:  # relay-wall / confocal scans: geometry only
+        result = geo.to_json_dict()
+        result.setdefault("stages", {})["reflectance"] = {
+            "status": "skipped: the capture holds paired traces; the joint reflectance NLP needs "
+                      "a full STIR (n_illuminated, n_observed, n_bins)", "success": None}
+        return geo, None, result
     est = _reflectance_stage(cap, geo, brdf)
     result = est.to_json_dict(geo) if est is not None else geo.to_json_dict()
     return geo, est, result

@@ -47,3 +47,18 @@ def test_run_default_problem_writes_report_and_pictures(tmp_path):
     assert report["simulation"]["bounces"] == 3
     for pic in report["pictures"]:
         assert (tmp_path / pic.split("/")[-1]).stat().st_size > 10_000
+
+
+def test_import_then_estimate_real_confocal_scan(tmp_path, shared_data):
+    """Stanford 40 cm resolution chart: import, estimate (geometry only: a paired capture)."""
+    src = shared_data / "otoole2018_confocal" / "data_resolution_chart_40cm.mat"
+    if not src.exists():
+        pytest.skip(f"real data not present: {src}")
+    cap_path, est_path = tmp_path / "chart.h5", tmp_path / "chart.json"
+    assert main(["import", str(src), "--out", str(cap_path)]) == 0
+    assert main(["estimate", str(cap_path), "--out", str(est_path)]) == 0
+    d = json.loads(est_path.read_text())
+    assert d["stages"]["reflectance"]["status"].startswith("skipped")
+    hidden = [p for p in d["patches"] if not p["visible"]]
+    assert hidden, "no hidden point found"
+    assert abs(hidden[-1]["position"][2] - 0.40) < 0.005   # the chart stands 40 cm from the wall
