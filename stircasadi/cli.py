@@ -165,13 +165,23 @@ def cmd_run(args) -> int:
 
 
 def _aligned_positions(geo, scene):
+    """Estimated positions in the scene's frame, for the picture: as they are when the estimate
+    is in the capture's frame, else mapped about the source onto the visible truth by the
+    orthogonal Procrustes solution (a rotation, or a reflection: distances alone cannot tell a
+    scene from its mirror image)."""
     if geo is None:
         return None
-    try:
-        from .geometry import aligned_positions
-        return aligned_positions(geo, scene)
-    except (ImportError, AttributeError):
+    P = np.asarray(geo.positions, float)
+    if getattr(geo, "frame", None) == "capture":
+        return P
+    vis = np.asarray(geo.visible, bool)
+    ids = np.asarray(geo.ids, int)[vis]
+    if vis.sum() < 2 or ids.max() >= scene.n_patches:
         return None
+    A, B = P[vis] - geo.source_xyz, scene.positions[ids] - scene.source
+    U, _, Vt = np.linalg.svd(A.T @ B)
+    R = Vt.T @ U.T
+    return (P - geo.source_xyz) @ R.T + scene.source
 
 
 def cmd_problems(args) -> int:
