@@ -217,10 +217,9 @@ class Scene:
         clear = np.ones(len(a), dtype=bool)
         if len(idx_ray):
             hit_d = np.linalg.norm(locs - origins[idx_ray], axis=1)
-            blocked = hit_d < (length[idx_ray] - 20 * eps - max(1e-4, 0.0) * 0)
-            # hits on the end patch itself (self_occlusion) sit at the segment end: ignore them
-            near_end = np.abs(hit_d - (length[idx_ray] - eps * 10)) < self._end_tol()
-            bad = idx_ray[blocked & ~near_end]
+            remaining = length[idx_ray] - 10 * eps       # from the offset origin to b
+            # a hit within the tolerance of b is b's own surface (self-occlusion), not a blocker
+            bad = idx_ray[hit_d < remaining - max(self._end_tol(), 20 * eps)]
             clear[np.unique(bad)] = False
         return clear
 
