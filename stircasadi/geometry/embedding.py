@@ -69,8 +69,9 @@ def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.nd
     return X, info
 
 
-def _ls_refine(X0, I, J, d, ds, R, r, rs):
-    """Unconstrained weighted least squares (the ML positions), sparse Jacobian."""
+def _ls_refine(X0, I, J, d, ds, R, r, rs, loss: str = "linear", f_scale: float = 1.0):
+    """Unconstrained weighted least squares (the ML positions), sparse Jacobian; ``loss`` /
+    ``f_scale`` as scipy's (a robust loss for the outlier screen)."""
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
 
@@ -104,19 +105,31 @@ def _ls_refine(X0, I, J, d, ds, R, r, rs):
         return coo_matrix((data, (rr, cc)), shape=(npair + nr, 3 * M)).tocsr()
 
     sol = least_squares(res, X0.ravel(), jac=jac, method="trf", x_scale="jac", max_nfev=200,
-                        tr_solver="lsmr")
+                        tr_solver="lsmr", loss=loss, f_scale=f_scale)
     return sol.x.reshape(M, 3), sol
 
 
 def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarray,
                    D_std: np.ndarray, eps: np.ndarray, r_eps: np.ndarray,
-                   max_widen: int = 2, mu: float = 1e-6, active_frac: float = 0.5) -> tuple[np.ndarray, dict]:
+                   max_widen: int = 2, mu: float = 1e-6, active_frac: float = 0.5,
+                   outlier_z: float | None = 8.0, max_outlier_rounds: int = 3) -> tuple[np.ndarray, dict]:
     """ML positions inside the eps bounds (see the module docstring).
 
-    Two steps: the unconstrained weighted least-squares optimum (scipy TRF, sparse Jacobian),
-    then IPOPT with the bound constraints of every pair whose residual there exceeds
+    Three steps: the unconstrained weighted least-squares optimum (scipy TRF, sparse Jacobian);
+    an outlier screen (below); then IPOPT with the bound constraints of every pair whose residual there exceeds
     ``active_frac * eps`` (bounds far from active cannot change the local solution; all bounds
-    are checked again at the end and the count outside is reported)."""
+    are checked again at the end and the count outside is reported).
+
+    Outlier screen (``outlier_z``; None switches it off): a second onset replaced by an earlier
+    family (a return via a hidden or occluded patch, seen in both O2_ij and O2_ji so that the
+    reciprocity screen of ``solve_distances`` cannot catch it) gives one d_ij that no point set
+    fits. If any normalised residual |(|x_i - x_j| - d_ij)| / s_ij exceeds ``outlier_z`` at the
+    least-squares optimum, the positions are re-fitted with a Cauchy loss (scale outlier_z / 2),
+    the pairs whose residual there still exceeds ``outlier_z`` are dropped and the plain least
+    squares is solved again (up to ``max_outlier_rounds`` times). For Gaussian onset errors a
+    residual beyond 8 std has probability ~1e-15 per pair, so a correct distance is essentially
+    never dropped; the dropped pairs (indices into X0) are returned in ``info['outliers']``.
+    """
     import casadi as ca
 
     t_start = time.perf_counter()
@@ -129,11 +142,26 @@ def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarr
     R = np.flatnonzero(rk)
     rs = np.maximum(r_std[R], 1e-9)
     X1, ls = _ls_refine(X0, I, J, d, ds, R, r[R], rs)
+    outliers: list[tuple[int, int]] = []
+    for _ in range(max_outlier_rounds if outlier_z is not None else 0):
+        z = np.abs(np.linalg.norm(X1[I] - X1[J], axis=1) - d) / ds
+        if not np.any(z > outlier_z):
+            break
+        Xr, _ls = _ls_refine(X1, I, J, d, ds, R, r[R], rs, loss="cauchy", f_scale=outlier_z / 2)
+        zr = np.abs(np.linalg.norm(Xr[I] - Xr[J], axis=1) - d) / ds
+        drop = zr > outlier_z
+        if not drop.any():
+            break
+        outliers += list(zip(I[drop].tolist(), J[drop].tolist()))
+        keep = ~drop
+        I, J, d, ds, de = I[keep], J[keep], d[keep], ds[keep], de[keep]
+        X1, ls = _ls_refine(Xr, I, J, d, ds, R, r[R], rs)
     res_d = np.abs(np.linalg.norm(X1[I] - X1[J], axis=1) - d)
     res_r = np.abs(np.linalg.norm(X1[R], axis=1) - r[R])
     act = res_d > active_frac * de
     act_r = res_r > active_frac * r_eps[R]
-    info = {"ls_status": ls.message, "ls_nfev": int(ls.nfev), "n_pairs": int(len(I))}
+    info = {"ls_status": ls.message, "ls_nfev": int(ls.nfev), "n_pairs": int(len(I)),
+            "outliers": outliers}
     if not act.any() and not act_r.any():
         info.update({"status": "bounds inactive at the least-squares optimum (no IPOPT needed)",
                      "iterations": int(ls.nfev), "widen": 1.0, "n_constraints": 0,

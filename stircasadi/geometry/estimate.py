@@ -136,7 +136,23 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
                 X, rinfo = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, sol.eps, sol.r_eps)
                 stats["refine"] = StageStats("refine", str(rinfo.get("status")), int(rinfo.get("iterations", 0)),
                                              time.perf_counter() - t3, True,
-                                             {"widen": rinfo.get("widen"), "n_outside": rinfo.get("n_outside", 0)})
+                                             {"widen": rinfo.get("widen"), "n_outside": rinfo.get("n_outside", 0),
+                                              "n_outliers": len(rinfo.get("outliers", []))})
+                out_pairs = rinfo.get("outliers", [])
+                if out_pairs:
+                    # a distance no point set fits (an earlier family in both O2_ij and O2_ji):
+                    # reported unknown rather than kept with a bound it violates
+                    for a, b in out_pairs:
+                        sol.D[a, b] = sol.D[b, a] = np.nan
+                        sol.D_std[a, b] = sol.D_std[b, a] = np.inf
+                        sol.eps[a, b] = sol.eps[b, a] = np.inf
+                    amb.append({"kind": "outlier-distances",
+                                "patches": sorted({int(ids[k]) for p_ in out_pairs for k in p_}),
+                                "pairs": [[int(ids[a]), int(ids[b])] for a, b in out_pairs],
+                                "message": f"{len(out_pairs)} patch-to-patch distances disagree with every "
+                                           "embedding (residual > 8 std): their second onsets are most "
+                                           "likely an earlier family (a return via a hidden patch). "
+                                           "They were dropped and the positions re-solved."})
                 if rinfo.get("widen", 1.0) > 1.0:
                     amb.append({"kind": "eps-inconsistent", "patches": [],
                                 "message": f"the eps bounds were mutually infeasible; positions were "
