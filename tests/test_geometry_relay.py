@@ -88,3 +88,57 @@ def test_importers_on_real_files_and_errors(tmp_path):
     with pytest.raises(ImportFormatError, match="rect_data"):
         nm.read_stanford_lct(bad)
     assert nm.detect(bad) is None
+
+
+# Documented figures (data NOTES.md, half path = depth-like distance from the wall, metres):
+# summed-histogram 20 % onset and peak of the hidden return.
+STATUE_DOC = {"onset": 0.95, "peak": 1.11, "domain": (0.9, 1.3)}   # f-k statue, CC-SOCR domain
+TUAN_DOC = {"onset": 0.72, "peak": 0.80}                            # general-NLOS "tuan"
+
+
+def _relay_summary(cap):
+    est = estimate_geometry(cap)
+    on = est.extras["onsets"]
+    half = on["tau"][on["used"]] / 2
+    # tolerance on a half-path figure: one bin of quantisation of the documented bin index plus
+    # one IRF FWHM (a 20 % threshold crossing of the summed histogram and the fitted 50 % edge of
+    # one trace differ by a fraction of the blur), halved from path to depth
+    tol = (cap.grid.bin_width + on["fwhm"]) / 2
+    q = {p: float(np.percentile(half, p)) for p in (2, 20, 50)}
+    return est, half, q, tol
+
+
+def test_fk_statue_onsets_between_documented_onset_and_peak():
+    """Measured: per-trace onsets (half path) p2/p20/p50 = 0.965/0.997/1.045 m; plane depth 1.052 m,
+    point depth 0.971 m; tol = 12 mm. Documented: onset 0.95, peak 1.11, domain 0.9-1.3 m. The
+    per-trace p20 sits 4.7 cm after the documented onset because the estimator uses the strongest
+    25 % of traces, the documented onset is of the sum of all 4096."""
+    d = DATA / "fk2019_statue_confocal"
+    if not (d / "sub_Sig.mat").exists():
+        pytest.skip(f"data absent: {d}")
+    est, half, q, tol = _relay_summary(nm.read_ccsocr(d))
+    assert np.isfinite(est.positions).all() and est.stats["hidden_plane"].success
+    assert half.size > 500
+    lo, hi = STATUE_DOC["onset"] - tol, STATUE_DOC["peak"] + tol
+    for p, v in q.items():
+        assert lo <= v <= hi, (p, v, lo, hi)
+    for v in (est.extras["plane_depth_m"], est.extras["depth_m"]):
+        assert lo <= v <= hi, (v, lo, hi)
+        assert STATUE_DOC["domain"][0] <= v <= STATUE_DOC["domain"][1]
+
+
+def test_general_nlos_tuan_onset_matches_documented():
+    """Paired non-confocal scan (L-D 0.25-0.29 m apart). Measured: per-trace onsets (half path)
+    p2/p20/p50 = 0.697/0.723/0.764 m; tol = 12 mm. Documented: onset 0.72 (20 % of the summed
+    histogram: compared with the 20th percentile of per-trace onsets), peak 0.80 m."""
+    d = DATA / "generalnlos2024_tuan"
+    if not (d / "data_tuan.mat").exists():
+        pytest.skip(f"data absent: {d}")
+    cap = nm.read_general_nlos(d)
+    est, half, q, tol = _relay_summary(cap)
+    assert np.isfinite(est.positions).all() and half.size > 500
+    assert abs(q[20] - TUAN_DOC["onset"]) <= tol, (q[20], tol)
+    assert TUAN_DOC["onset"] - tol <= q[50] <= TUAN_DOC["peak"] + tol, q[50]
+    # the single-point fit lies in front of the earliest surface (an extended object's onsets
+    # put one best point nearer the wall), and within the authors' volume z in [0, 2] m
+    assert 0.0 < est.extras["depth_m"] <= q[20]
