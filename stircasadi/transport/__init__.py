@@ -26,6 +26,7 @@ from ..scene import Scene
 from ..sensor import Sensor
 from ..timegrid import TimeGrid
 from .bounces import path_sum
+from .deposit import kernel_support
 from .frequency import bounce_energies, frequency_solve
 from .statespace import build_state_space, simulate_state_space
 from .system import TransportSystem
@@ -144,10 +145,7 @@ def simulate(scene: Scene, grid: TimeGrid, sensor: Sensor | None = None, method:
 
 
 def _check_grid(system, grid, irf, K, allow_truncation, delay_mode):
-    lo_s, hi_s = irf.support()
-    if delay_mode == "integer":
-        h, off = irf.discrete(grid.bin_width)
-        lo_s, hi_s = -off * grid.bin_width, (len(h) - off) * grid.bin_width
+    lo_s, hi_s = kernel_support(irf, grid.bin_width, delay_mode == "integer")
     t_lo, t_hi = system.arrival_window(K)
     if not np.isfinite(t_lo):
         return

@@ -13,6 +13,15 @@ import numpy as np
 from ..timegrid import TimeGrid
 
 
+def kernel_support(irf, bin_width: float, integer: bool) -> tuple[float, float]:
+    """Offsets (metres, relative to a path's arrival) over which its deposit can be non-zero:
+    the impulse response's support, or in integer-delay mode that of its discrete kernel."""
+    if not integer:
+        return irf.support()
+    h, off = irf.discrete(bin_width)
+    return -off * bin_width, (len(h) - off) * bin_width
+
+
 def deposit(out: np.ndarray, col: np.ndarray, amp: np.ndarray, tau: np.ndarray, grid: TimeGrid,
             irf, integer: bool = False, chunk: int = 1 << 20) -> None:
     """Add paths (column ``col``, amplitude ``amp``, arrival ``tau``) into ``out`` (n_cols, n_bins)."""

@@ -36,7 +36,7 @@ from scipy.sparse.linalg import spsolve
 
 from ..errors import TransportError
 from ..timegrid import TimeGrid
-from .deposit import bin_integer_samples
+from .deposit import bin_integer_samples, kernel_support
 from .system import TransportSystem
 
 
@@ -130,10 +130,7 @@ def plan_period(system: TransportSystem, grid: TimeGrid, irf, bounces: int | Non
                 tail_tol: float, max_factor: int) -> tuple[int, dict]:
     """Choose the FFT length N (period N*dt) and report the aliasing bound."""
     w = grid.bin_width
-    lo_s, hi_s = (0.0, 0.0) if system.delay_mode == "integer" else irf.support()
-    if system.delay_mode == "integer":
-        h, off = irf.discrete(w)
-        lo_s, hi_s = -off * w, (len(h) - off) * w
+    lo_s, hi_s = kernel_support(irf, w, system.delay_mode == "integer")
     t_lo, _ = system.arrival_window(1)
     info: dict = {}
     if bounces is not None:
