@@ -29,10 +29,16 @@ def plane_patches(centre, normal, u_axis, n_u: int, n_v: int, spacing: float, ar
     return out
 
 
-def paper_sensor(noise_rel: float = 1e-4) -> Sensor:
-    """210 ps FWHM Gaussian impulse response (photodiode + 5 GHz scope) and Gaussian noise."""
-    return Sensor(irf=GaussianIRF.from_ps(210.0),
-                  noise=GaussianNoise(relative=noise_rel) if noise_rel > 0 else None)
+def gaussian_sensor(noise_rel: float, fwhm_ps: float, calibrated_camera: bool = False) -> Sensor:
+    """Gaussian impulse response of ``fwhm_ps`` and Gaussian noise ``noise_rel`` x peak (none at 0)."""
+    return Sensor(irf=GaussianIRF.from_ps(fwhm_ps),
+                  noise=GaussianNoise(relative=noise_rel) if noise_rel > 0 else None,
+                  calibrated_camera=calibrated_camera)
+
+
+def paper_sensor(noise_rel: float = 1e-4, calibrated_camera: bool = False) -> Sensor:
+    """The paper's 210 ps FWHM response (photodiode + 5 GHz scope) and Gaussian noise."""
+    return gaussian_sensor(noise_rel, 210.0, calibrated_camera)
 
 
 def standard_main(mod, seed: int = 0) -> None:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from stircasadi.brdf import Lambertian, Phong
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import standard_main, unit
+from ._common import gaussian_sensor, standard_main, unit
 
 NAME = "glossy_patch"
 GLOSSY = Phong(albedo=0.3, specular=0.5, exponent=8.0)
@@ -27,8 +27,7 @@ def build_grid() -> TimeGrid:
 
 
 def build_sensor(noise_rel: float = 1e-3) -> Sensor:
-    return Sensor(irf=GaussianIRF.from_ps(60.0),
-                  noise=GaussianNoise(relative=noise_rel) if noise_rel > 0 else None)
+    return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
 def truth() -> dict:

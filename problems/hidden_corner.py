@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from stircasadi.brdf import Lambertian
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import standard_main, unit
+from ._common import paper_sensor, standard_main, unit
 
 NAME = "hidden_corner"
 N_HIDDEN = 2
@@ -37,8 +37,7 @@ def build_grid() -> TimeGrid:
 
 def build_sensor() -> Sensor:
     """210 ps FWHM Gaussian response, Gaussian noise at 1e-6 of the peak, calibrated camera."""
-    return Sensor(irf=GaussianIRF.from_ps(210.0), noise=GaussianNoise(relative=NOISE_REL),
-                  calibrated_camera=True)
+    return paper_sensor(NOISE_REL, calibrated_camera=True)
 
 
 def truth() -> dict:

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from stircasadi.scene import Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import plane_patches, standard_main, unit
+from ._common import gaussian_sensor, plane_patches, standard_main, unit
 
 NAME = "lambertian_walls"
 SPAN = 0.6      # metres covered by each wall's patches
@@ -50,8 +50,7 @@ def build_grid(n_bins: int = 1024) -> TimeGrid:
 
 
 def build_sensor(noise_rel: float = 1e-2) -> Sensor:
-    return Sensor(irf=GaussianIRF.from_ps(60.0),
-                  noise=GaussianNoise(relative=noise_rel) if noise_rel > 0 else None)
+    return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
 def truth() -> dict:

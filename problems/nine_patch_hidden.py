@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from stircasadi.brdf import Lambertian
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
 from . import lambertian_walls
-from ._common import standard_main, unit
+from ._common import gaussian_sensor, standard_main, unit
 
 NAME = "nine_patch_hidden"
 
@@ -26,8 +26,7 @@ def build_grid(n_bins: int = 160) -> TimeGrid:
 
 
 def build_sensor(noise_rel: float = 0.0) -> Sensor:
-    return Sensor(irf=GaussianIRF.from_ps(60.0),
-                  noise=GaussianNoise(relative=noise_rel) if noise_rel > 0 else None)
+    return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
 def truth() -> dict:

@@ -61,8 +61,8 @@ def build_sensor():
     return paper_sensor(noise_rel=1e-6)  # second bounces are ~1e-4 of the peak: keep them visible
 
 
-def truth() -> dict:
-    t = build_scene().truth_dict()
+def truth(occluded: bool = False) -> dict:
+    t = build_scene(occluded).truth_dict()
     t["plane"] = plane_labels()
     return t
 

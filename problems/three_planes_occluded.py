@@ -18,9 +18,7 @@ def build_scene() -> Scene:
 
 
 def truth() -> dict:
-    t = build_scene().truth_dict()
-    t["plane"] = plane_labels()
-    return t
+    return _base.truth(occluded=True)
 
 
 def main() -> None:
