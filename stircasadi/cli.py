@@ -178,10 +178,10 @@ def _aligned_positions(geo, scene):
     ids = np.asarray(geo.ids, int)[vis]
     if vis.sum() < 2 or ids.max() >= scene.n_patches:
         return None
-    A, B = P[vis] - geo.source_xyz, scene.positions[ids] - scene.source
-    U, _, Vt = np.linalg.svd(A.T @ B)
-    R = Vt.T @ U.T
-    return (P - geo.source_xyz) @ R.T + scene.source
+    from .geometry.report import procrustes_matrix
+
+    Q = procrustes_matrix(P[vis] - geo.source_xyz, scene.positions[ids] - scene.source)
+    return (P - geo.source_xyz) @ Q + scene.source
 
 
 def cmd_problems(args) -> int:

@@ -6,14 +6,22 @@ import numpy as np
 __all__ = ["procrustes", "report_table", "position_rmse"]
 
 
+def procrustes_matrix(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Orthogonal Q (rotation or reflection: distances cannot tell a scene from its mirror image)
+    minimising ||A Q - B|| over the rows finite in both, about the origin (= the source)."""
+    A, B = np.asarray(A, float), np.asarray(B, float)
+    ok = np.isfinite(A).all(axis=1) & np.isfinite(B).all(axis=1)
+    U, _, Vt = np.linalg.svd(A[ok].T @ B[ok])
+    return U @ Vt
+
+
 def procrustes(A: np.ndarray, B: np.ndarray, about_origin: bool = True) -> np.ndarray:
     """Rotate/reflect A (about the origin = the source) onto B; returns the aligned A."""
     A, B = np.asarray(A, float), np.asarray(B, float)
     ok = np.isfinite(A).all(axis=1) & np.isfinite(B).all(axis=1)
     ca = np.zeros(3) if about_origin else A[ok].mean(axis=0)
     cb = np.zeros(3) if about_origin else B[ok].mean(axis=0)
-    U, _, Vt = np.linalg.svd((A[ok] - ca).T @ (B[ok] - cb))
-    return (A - ca) @ (U @ Vt) + cb
+    return (A - ca) @ procrustes_matrix(A - ca, B - cb) + cb
 
 
 def _truth_arrays(est, truth):
@@ -45,11 +53,7 @@ def position_rmse(est, truth) -> tuple[float, np.ndarray, np.ndarray]:
     T = _truth_arrays(est, truth)
     X = est.positions
     if est.frame != "capture":
-        R = procrustes(X[est.visible], T[est.visible])
-        Xa = X.copy()
-        U, _, Vt = np.linalg.svd(X[est.visible][np.isfinite(T[est.visible]).all(1)].T
-                                 @ T[est.visible][np.isfinite(T[est.visible]).all(1)])
-        Xa = X @ (U @ Vt)
+        Xa = X @ procrustes_matrix(X[est.visible], T[est.visible])
         T = _truth_arrays(type(est)(**{**est.__dict__, "positions": Xa}), truth)
         X = Xa
     ok = est.visible & np.isfinite(X).all(1) & np.isfinite(T).all(1)
