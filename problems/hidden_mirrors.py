@@ -3,7 +3,6 @@ only for wall pairs (i, j) whose specular path i -> mirror -> j exists, at the p
 the mirror image; the mirrors' positions and orientations follow from those third onsets."""
 from __future__ import annotations
 
-import numpy as np
 
 from stircasadi.brdf import Lambertian, Mirror
 from stircasadi.scene import Patch, Scene

@@ -2,7 +2,6 @@
 co-located source and camera. Geometry needs only second bounces (every pair is visible)."""
 from __future__ import annotations
 
-import numpy as np
 
 from stircasadi.brdf import Lambertian
 from stircasadi.scene import Patch, Scene

@@ -3,7 +3,6 @@ drivers over pseudo-terminals; the Capture equals the forward model within the n
 distances come back."""
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 

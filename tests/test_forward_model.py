@@ -9,7 +9,7 @@ from scipy.special import ndtr
 
 from stircasadi.brdf import Lambertian, Mirror, Phong
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import ArrayIRF, GaussianIRF, IdealIRF, Sensor
+from stircasadi.sensor import ArrayIRF, GaussianIRF, Sensor
 from stircasadi.timegrid import TimeGrid
 from stircasadi.transport import (TransportSystem, build_state_space, radiosity, simulate)
 

@@ -45,7 +45,6 @@ def test_plane_groups_and_normals(planes):
         got = lab[truth_lab == t]
         assert np.mean(got == np.bincount(got[got >= 0]).argmax()) > 0.9
     # normals: compare after the same rotation used for the positions
-    from stircasadi.geometry.report import procrustes
     U, _, Vt = np.linalg.svd(est.positions.T @ sc.positions[est.ids])
     n = est.normals @ (U @ Vt)
     cosang = np.abs(np.sum(n * sc.normals[est.ids], axis=1))

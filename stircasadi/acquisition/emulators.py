@@ -32,7 +32,6 @@ import errno
 import os
 import select
 import threading
-import time
 import tty
 from dataclasses import dataclass
 from typing import Callable

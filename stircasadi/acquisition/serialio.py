@@ -213,8 +213,6 @@ class Port:
 
     def write(self, command: str) -> None:
         """Send one command line (the terminator is appended)."""
-        import serial
-
         self._need_open(command)
         try:
             self.io.reset_input_buffer()  # stale replies never answer a new command
@@ -226,8 +224,6 @@ class Port:
                                    disconnected=True) from exc
 
     def _read(self, n: int, deadline: float, command: str, sofar: bytes) -> bytes:
-        import serial
-
         if deadline - time.monotonic() <= 0:
             return b""
         try:

@@ -32,7 +32,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
-from ..capture import FORMAT, VERSION, Capture, read_from
+from ..capture import FORMAT, VERSION, Capture
 from ..errors import AcquisitionSettingsError, CaptureError, InstrumentError
 from ..timegrid import TimeGrid
 

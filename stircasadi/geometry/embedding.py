@@ -73,7 +73,6 @@ def _ls_refine(X0, I, J, d, ds, R, r, rs, loss: str = "linear", f_scale: float =
     """Unconstrained weighted least squares (the ML positions), sparse Jacobian; ``loss`` /
     ``f_scale`` as scipy's (a robust loss for the outlier screen)."""
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
 
     M = X0.shape[0]
     npair, nr = len(I), len(R)
@@ -90,7 +89,6 @@ def _ls_refine(X0, I, J, d, ds, R, r, rs, loss: str = "linear", f_scale: float =
         nv = np.maximum(np.linalg.norm(v, axis=1), 1e-12)
         u = v / nv[:, None] / ds[:, None]
         rows = np.repeat(np.arange(npair), 3)
-        Jm = lil_matrix((npair + nr, 3 * M))
         from scipy.sparse import coo_matrix
         cols_i = (3 * I[:, None] + np.arange(3)).ravel()
         cols_j = (3 * J[:, None] + np.arange(3)).ravel()

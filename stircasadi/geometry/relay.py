@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import GeometryError
-from .onsets import GaussTemplate, fit_onsets, noise_level
+from .onsets import GaussTemplate, fit_onsets
 
 __all__ = ["relay_onsets", "fit_point", "fit_plane", "estimate_relay"]
 

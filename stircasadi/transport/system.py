@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..brdf import Lambertian, Mirror, Phong
+from ..brdf import Mirror, Phong
 from ..errors import TransportError
 from ..radiometry import cosines, form_factor, source_irradiance
 from ..scene import Scene
@@ -252,7 +252,6 @@ class TransportSystem:
 def scene_legs(scene: Scene) -> Legs:
     """All legs between patches: direct (facing, unoccluded) and image-source legs via mirrors."""
     z, n, a = scene.positions, scene.normals, scene.areas
-    M = scene.n_patches
     mirror = np.array([isinstance(b, Mirror) for b in scene.brdfs])
     vis = scene.patch_visibility.copy()
     # legs into or out of mirror patches are replaced by image-source legs through them
@@ -266,7 +265,6 @@ def scene_legs(scene: Scene) -> Legs:
     u = vec / d[:, None]
     src, dst, length, gg, dout, din, via = [h], [k], [d], [g], [u], [-u], [-np.ones(len(h), int)]
     if mirror.any():
-        from ..brdf import Mirror as _M
         others = np.flatnonzero(~mirror)
         for m in np.flatnonzero(mirror):
             R = scene.brdfs[m].reflectance
@@ -274,7 +272,7 @@ def scene_legs(scene: Scene) -> Legs:
             hh, kk = hh.ravel(), kk.ravel()
             sel = hh != kk
             hh, kk = hh[sel], kk[sel]
-            hit, plen, fac, hp = _M.transfer(z[hh], z[m], n[m], a[m], z[kk], R)
+            hit, plen, fac, hp = Mirror.transfer(z[hh], z[m], n[m], a[m], z[kk], R)
             if not hit.any():
                 continue
             hh, kk, plen, fac, hp = hh[hit], kk[hit], plen[hit], fac[hit], hp[hit]
