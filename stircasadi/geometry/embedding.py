@@ -165,30 +165,22 @@ def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarr
                      "iterations": int(ls.nfev), "widen": 1.0, "n_constraints": 0,
                      "n_outside": 0, "wall_time_s": time.perf_counter() - t_start})
         return X1, info
-    Ia, Ja, da, dea = I[act], J[act], d[act], de[act]
-    Ra, ra, rea = R[act_r], r[R][act_r], r_eps[R][act_r]
     # decision variables: displacement from the LS optimum in units of the typical distance std
     # (values ~0.1-100, STYLE.md rule 7); constraints are normalised residuals in [-1, 1] * widen
     scale = float(np.median(ds))
-    X = ca.SX.sym("dX", M, 3)
-    Xm = X1 + scale * X
-    dist = ca.sqrt(ca.sum2((Xm[I.tolist(), :] - Xm[J.tolist(), :]) ** 2))
-    rd = ca.sqrt(ca.sum2(Xm[R.tolist(), :] ** 2))
-    n_terms = max(len(I) + len(R), 1)
-    f = (ca.sumsqr((dist - d) / ds) + ca.sumsqr((rd - r[R]) / rs)) / n_terms
-    f = f + 1e-6 * ca.sumsqr(X)  # gauge: rotation about the source
-    g = ca.vertcat((ca.sqrt(ca.sum2((Xm[Ia.tolist(), :] - Xm[Ja.tolist(), :]) ** 2)) - da) / dea,
-                   (ca.sqrt(ca.sum2(Xm[Ra.tolist(), :] ** 2)) - ra) / rea)
+    nlp, hess_opts = _bounded_nlp(X1, scale, I, J, d, ds, de, R, r[R], rs, r_eps[R],
+                                  np.flatnonzero(act), np.flatnonzero(act_r))
+    nc = int(act.sum() + act_r.sum())
     x0 = np.zeros(3 * M)
     stats_all = []
     widen = 1.0
-    nlp = {"x": ca.reshape(X, -1, 1), "f": f, "g": g}
     solver = ca.nlpsol("geom_refine", "ipopt", nlp,
                        {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
-                        "ipopt.max_iter": 300, "ipopt.tol": 1e-8, "ipopt.max_cpu_time": 60.0})
+                        "ipopt.max_iter": 300, "ipopt.tol": 1e-8, "ipopt.max_cpu_time": 60.0,
+                        **hess_opts})
     for attempt in range(max_widen + 1):
-        lo = -widen * np.ones(len(da) + len(ra))
-        hi = widen * np.ones(len(da) + len(ra))
+        lo = -widen * np.ones(nc)
+        hi = widen * np.ones(nc)
         t0 = time.perf_counter()
         sol = solver(x0=x0, lbg=lo, ubg=hi)
         st = solver.stats()
@@ -208,6 +200,106 @@ def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarr
                       "The distance bounds are mutually inconsistent; check the onsets (missing or "
                       "mislabelled families) or raise the eps confidence level.",
                       status=stats_all[-1]["return_status"], stats={"attempts": stats_all})
+
+
+def _bounded_nlp(X1, scale, I, J, d, ds, de, R, r, rs, re, act, act_r, hessian: str = "structured"):
+    """The IPOPT problem of ``refine_bounded`` in the displacement dX = (X - X1) / scale.
+
+    Returns ``(nlp, options)`` for ``casadi.nlpsol``. Objective and constraints are CasADi MX
+    expressions over index vectors (one graph node per vector operation, not per pair), so
+    building them costs O(1) nodes whatever M. The Hessian of the Lagrangian is dense in the
+    3M coordinates (every pair couples two patches) and CasADi's automatic one (SX, coloured
+    forward-over-reverse) costs O(M^3) graph nodes: 12 s to build at M = 100, minutes at 200.
+    ``hessian="structured"`` supplies it in closed form instead (the same exact Hessian, so the
+    same iterates): for phi(|v|) with v = x_i - x_j,
+
+        d2 phi / dv2 = phi'' u u^T + (phi' / |v|) (I - u u^T),   u = v / |v|,
+
+    a 3 x 3 block B_p per pair placed at (i, i), (j, j) with + and at (i, j) with -;
+    phi = sigma (|v| - d)^2 / (s^2 n) for the objective and lambda_k (|v| - d) / eps for an
+    active bound. ``hessian="symbolic"`` is the former SX formulation with CasADi's Hessian
+    (reference for tests; small M only).
+    """
+    import casadi as ca
+
+    M = X1.shape[0]
+    n_terms = max(len(I) + len(R), 1)
+    if hessian == "symbolic":
+        X = ca.SX.sym("dX", M, 3)
+        Xm = X1 + scale * X
+        dist = ca.sqrt(ca.sum2((Xm[I.tolist(), :] - Xm[J.tolist(), :]) ** 2))
+        rd = ca.sqrt(ca.sum2(Xm[R.tolist(), :] ** 2))
+        f = (ca.sumsqr((dist - d) / ds) + ca.sumsqr((rd - r) / rs)) / n_terms
+        f = f + 1e-6 * ca.sumsqr(X)  # gauge: rotation about the source
+        Ia, Ja, Ra = I[act], J[act], R[act_r]
+        g = ca.vertcat((ca.sqrt(ca.sum2((Xm[Ia.tolist(), :] - Xm[Ja.tolist(), :]) ** 2)) - d[act]) / de[act],
+                       (ca.sqrt(ca.sum2(Xm[Ra.tolist(), :] ** 2)) - r[act_r]) / re[act_r])
+        return {"x": ca.reshape(X, -1, 1), "f": f, "g": g}, {}
+    if hessian != "structured":
+        raise ValueError(f"hessian must be 'structured' or 'symbolic'; got {hessian!r}")
+    na, nra = len(act), len(act_r)
+    x = ca.MX.sym("dX", 3 * M)                    # column-major: x[k * M + i] = dX[i, k]
+    Xm = ca.DM(X1) + scale * ca.reshape(x, M, 3)
+    V = Xm[I.tolist(), :] - Xm[J.tolist(), :]    # (npair, 3)
+    rho = ca.sqrt(ca.sum2(V ** 2))
+    Vr = Xm[R.tolist(), :]
+    rr = ca.sqrt(ca.sum2(Vr ** 2))
+    f = (ca.sumsqr((rho - d) / ds) + ca.sumsqr((rr - r) / rs)) / n_terms
+    f = f + 1e-6 * ca.sumsqr(x)  # gauge: rotation about the source
+    g = ca.vertcat((rho[act.tolist()] - d[act]) / de[act], (rr[act_r.tolist()] - r[act_r]) / re[act_r])
+    nlp = {"x": x, "f": f, "g": g}
+
+    sigma = ca.MX.sym("lam_f")
+    lam = ca.MX.sym("lam_g", na + nra)
+    p = ca.MX.sym("p", 0, 1)
+
+    # objective weights: phi' / |v| = c (|v| - d) / |v|, phi'' = c with c = 2 sigma / (s^2 n)
+    cf = 2.0 / (ds ** 2 * n_terms)
+    cr = 2.0 / (rs ** 2 * n_terms)
+    # bound multipliers scattered onto the pairs (sparse constant maps)
+    Pa = ca.DM(ca.Sparsity.triplet(len(I), na, act.tolist(), list(range(na))), 1.0)
+    Pr = ca.DM(ca.Sparsity.triplet(len(R), nra, act_r.tolist(), list(range(nra))), 1.0)
+    lam_d = ca.densify(ca.mtimes(Pa, lam[:na] / (de[act] * rho[act.tolist()]))) if na else 0.0
+    lam_r = ca.densify(ca.mtimes(Pr, lam[na:] / (re[act_r] * rr[act_r.tolist()]))) if nra else 0.0
+    beta = sigma * cf * (rho - d) / rho + lam_d        # coefficient of (I - u u^T)
+    alpha = sigma * cf                                 # coefficient of u u^T
+    beta_r = sigma * cr * (rr - r) / rr + lam_r
+    alpha_r = sigma * cr
+    U, Ur = V / ca.repmat(rho, 1, 3), Vr / ca.repmat(rr, 1, 3)
+    s2 = scale ** 2
+    kl = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    Bp, Br = {}, {}
+    for k, l in kl:
+        Bp[k, l] = s2 * ((alpha - beta) * U[:, k] * U[:, l] + (beta if k == l else 0.0))
+        Br[k, l] = s2 * ((alpha_r - beta_r) * Ur[:, k] * Ur[:, l] + (beta_r if k == l else 0.0))
+    npair, nr = len(I), len(R)
+    inc = ca.DM(ca.Sparsity.triplet(M, 2 * npair, np.concatenate([I, J]).tolist(),
+                                    list(range(2 * npair))), 1.0)
+    inc_r = ca.DM(ca.Sparsity.triplet(M, nr, R.tolist(), list(range(nr))), 1.0)
+    vals, rows, cols = [], [], []
+    ar = np.arange(M)
+    for k, l in kl:  # diagonal blocks: sum over the pairs and the source leg of each patch
+        dg = ca.mtimes(inc, ca.vertcat(Bp[k, l], Bp[k, l])) + ca.mtimes(inc_r, Br[k, l])
+        if k == l:
+            dg = dg + 2e-6 * sigma
+        vals.append(ca.densify(dg))
+        rows.append(k * M + ar)
+        cols.append(l * M + ar)
+    for k in range(3):  # off-diagonal blocks (i, j), i < j: -B_p, stored in the upper triangle
+        for l in range(3):
+            rw, cl = k * M + I, l * M + J
+            lo_tri = rw > cl
+            rw, cl = np.where(lo_tri, cl, rw), np.where(lo_tri, rw, cl)
+            vals.append(-Bp[min(k, l), max(k, l)])
+            rows.append(rw)
+            cols.append(cl)
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    order = np.lexsort((rows, cols))                   # CasADi stores nonzeros column by column
+    sp = ca.Sparsity.triplet(3 * M, 3 * M, rows[order].tolist(), cols[order].tolist())
+    H = ca.MX(sp, ca.vertcat(*vals)[order.tolist()])
+    hess = ca.Function("nlp_hess_l", [x, p, sigma, lam], [H],
+                       ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+    return nlp, {"hess_lag": hess}
 
 
 def direct_positions(capture, ids: np.ndarray, c: np.ndarray | None = None) -> np.ndarray | None:
