@@ -28,7 +28,6 @@ fitted with the wrong impulse response.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,94 +83,66 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
     colocated : source and camera at the same point (r = c).
     level : confidence of eps. floor : onset model-error allowance (metres of path).
     """
+    from scipy.sparse import coo_matrix
+
     ill, obs = np.asarray(ill), np.asarray(obs)
     ids = np.union1d(ill, obs)
     M = len(ids)
-    pos = {int(v): k for k, v in enumerate(ids)}
     nq = M if colocated else 2 * M
-
-    def a_vec(i, j):
-        """Sparse row of T2 for the leg unknowns: {index: coefficient}."""
-        a: dict = {}
-        for k in (pos[i], pos[j] if colocated else M + pos[j]):
-            a[k] = a.get(k, 0.0) + 1.0
-        return a
-
-    def add_outer(Nm, a, b, w):
-        for p_, x_ in a.items():
-            for q_, y_ in b.items():
-                Nm[p_, q_] += w * x_ * y_
-
-    def add_vec(v, a, w):
-        for p_, x_ in a.items():
-            v[p_] += w * x_
-
-    def dot(a, v):
-        return sum(x_ * v[p_] for p_, x_ in a.items())
-
-    def combine(items):
-        out: dict = {}
-        for a, w in items:
-            for p_, x_ in a.items():
-                out[p_] = out.get(p_, 0.0) + w * x_
-        return out
-
+    pi, pj = np.searchsorted(ids, ill), np.searchsorted(ids, obs)   # row / column -> position
     S = np.where(np.isfinite(S) & (S > 0), np.sqrt(np.maximum(S, 0) ** 2 + floor ** 2), np.nan)
     O = np.array(O, float)
+    S = np.asarray(S, float)
+    PI, PJ = np.broadcast_to(pi[:, None], O.shape), np.broadcast_to(pj[None, :], O.shape)
     rejected = []
     if colocated:
         # screen: reciprocity (O2_ij = O2_ji when s = o) and the triangle inequality with the
         # source (|r_i - r_j| <= d_ij <= r_i + r_j); an onset failing either is a later family
         # (or noise) detected in place of the missing second bounce.
-        oi = {int(v): k for k, v in enumerate(ill)}
-        oo = {int(v): k for k, v in enumerate(obs)}
-        O1 = {int(i): (O[oi[int(i)], oo[int(i)]], S[oi[int(i)], oo[int(i)]])
-              for i in ids if int(i) in oi and int(i) in oo}
-        for x, i in enumerate(ill):
-            for y, j in enumerate(obs):
-                i_, j_ = int(i), int(j)
-                if i_ == j_ or not np.isfinite(O[x, y]):
-                    continue
-                bad = False
-                if j_ in oi and i_ in oo and np.isfinite(O[oi[j_], oo[i_]]):
-                    o2 = O[oi[j_], oo[i_]]
-                    tol = 5.0 * math.hypot(S[x, y], S[oi[j_], oo[i_]])
-                    bad = abs(O[x, y] - o2) > tol
-                if i_ in O1 and j_ in O1 and np.all(np.isfinite([O1[i_][0], O1[j_][0]])):
-                    ri, rj = O1[i_][0] / 2, O1[j_][0] / 2
-                    d = O[x, y] - ri - rj
-                    tol = 5.0 * S[x, y] + 1e-9
-                    bad = bad or d < abs(ri - rj) - tol or d > ri + rj + tol
-                if bad:
-                    rejected.append((i_, j_))
-        for i_, j_ in rejected:
-            O[oi[i_], oo[j_]] = np.nan
+        row_of, col_of = np.full(M, -1), np.full(M, -1)
+        row_of[pi], col_of[pj] = np.arange(len(ill)), np.arange(len(obs))
+        with np.errstate(invalid="ignore"):
+            # the reciprocal onset O[row of j, column of i] (NaN where either is not scanned)
+            ok_t = (row_of[PJ] >= 0) & (col_of[PI] >= 0)
+            Ot = np.where(ok_t, O[np.maximum(row_of[PJ], 0), np.maximum(col_of[PI], 0)], np.nan)
+            St = np.where(ok_t, S[np.maximum(row_of[PJ], 0), np.maximum(col_of[PI], 0)], np.nan)
+            bad = np.isfinite(Ot) & (np.abs(O - Ot) > 5.0 * np.hypot(S, St))
+            # first onsets O1_i = O[row of i, column of i] for ids both illuminated and observed
+            both = (row_of >= 0) & (col_of >= 0)
+            O1 = np.where(both, O[np.maximum(row_of, 0), np.maximum(col_of, 0)], np.nan)
+            ri, rj = O1[PI] / 2, O1[PJ] / 2
+            d = O - ri - rj
+            tol = 5.0 * S + 1e-9
+            tri = np.isfinite(ri) & np.isfinite(rj) & ((d < np.abs(ri - rj) - tol) | (d > ri + rj + tol))
+            bad = (bad | tri) & np.isfinite(O) & (PI != PJ)
+        rejected = [(int(ill[x]), int(obs[y])) for x, y in zip(*np.nonzero(bad))]
+        O[bad] = np.nan
+    # one equation per finite onset: O_e = q[p1] + q[p2] (+ d_pair when off-diagonal)
+    use = np.isfinite(O) & np.isfinite(S)
+    e_i, e_j, o = PI[use], PJ[use], O[use]
+    w = 1.0 / S[use] ** 2
+    p1, p2 = e_i, (e_j if colocated else M + e_j)
     N = np.zeros((nq, nq))
     b = np.zeros(nq)
-    pair_eqs: dict = {}
-    for x, i in enumerate(ill):
-        for y, j in enumerate(obs):
-            o, s = O[x, y], S[x, y]
-            if not (np.isfinite(o) and np.isfinite(s)):
-                continue
-            i, j = int(i), int(j)
-            if i == j:
-                a = a_vec(i, j)
-                w = 1.0 / s ** 2
-                add_outer(N, a, a, w)
-                add_vec(b, a, w * o)
-            else:
-                key = (min(i, j), max(i, j))
-                pair_eqs.setdefault(key, []).append((a_vec(i, j), o, 1.0 / s ** 2))
-    for eqs in pair_eqs.values():
-        Wd = sum(w for _, _, w in eqs)
-        sa = combine([(a, w) for a, _, w in eqs])
-        so = sum(w * o for _, o, w in eqs)
-        for a, o, w in eqs:
-            add_outer(N, a, a, w)
-            add_vec(b, a, w * o)
-        add_outer(N, sa, sa, -1.0 / Wd)
-        add_vec(b, sa, -so / Wd)
+    for u_, v_ in ((p1, p1), (p1, p2), (p2, p1), (p2, p2)):
+        np.add.at(N, (u_, v_), w)
+    np.add.at(b, p1, w * o)
+    np.add.at(b, p2, w * o)
+    # the pair unknowns d are eliminated in closed form (Schur complement per pair)
+    off = e_i != e_j
+    lo_, hi_ = np.minimum(e_i[off], e_j[off]), np.maximum(e_i[off], e_j[off])
+    keys, grp = np.unique(lo_ * M + hi_, return_inverse=True)
+    ng = len(keys)
+    gi, gj = keys // M, keys % M
+    wo, oo_, q1, q2 = w[off], o[off], p1[off], p2[off]
+    Wd = np.bincount(grp, wo, minlength=ng)
+    so = np.bincount(grp, wo * oo_, minlength=ng)
+    n_eq = np.bincount(grp, minlength=ng)
+    SA = coo_matrix((np.concatenate([wo, wo]), (np.concatenate([grp, grp]), np.concatenate([q1, q2]))),
+                    shape=(ng, nq)).tocsr()
+    SA.sum_duplicates()
+    N -= (SA.T @ SA.multiply(1.0 / Wd[:, None])).toarray()
+    b -= SA.T @ (so / Wd)
     # pseudo-inverse with explicit null space
     evals, evecs = np.linalg.eigh(N)
     tol = max(evals.max(), 1e-300) * 1e-12
@@ -180,36 +151,40 @@ def solve_distances(ill: np.ndarray, obs: np.ndarray, O: np.ndarray, S: np.ndarr
     null = evecs[:, ~good]
     q = Ninv @ b
 
-    def var_of(k):
-        if isinstance(k, dict):
-            idx = np.array(list(k.keys()), dtype=int)
-            val = np.array(list(k.values()), dtype=float)
-        else:
-            idx = np.flatnonzero(k)
-            val = k[idx]
-        if null.size and np.linalg.norm(null[idx].T @ val) > 1e-6 * max(np.linalg.norm(val), 1e-300):
-            return np.inf
-        return float(val @ Ninv[np.ix_(idx, idx)] @ val)
+    def var_rows(idx, val):
+        """val_g . Ninv[idx_g, idx_g] . val_g per row g (padded with zero weights); inf where
+        the combination touches the null space of N (not identified)."""
+        v = np.einsum("ga,gab,gb->g", val, Ninv[idx[:, :, None], idx[:, None, :]], val)
+        if null.size:
+            proj = np.linalg.norm(np.einsum("gak,ga->gk", null[idx], val), axis=1)
+            v = np.where(proj > 1e-6 * np.maximum(np.linalg.norm(val, axis=1), 1e-300), np.inf, v)
+        return v
 
     r = q[:M]
     cc = q[:M] if colocated else q[M:]
-    r_var = np.array([var_of({k: 1.0}) for k in range(M)])
-    c_var = r_var if colocated else np.array([var_of({M + k: 1.0}) for k in range(M)])
+    eye = np.arange(nq)[:, None]
+    var_q = var_rows(eye, np.ones((nq, 1)))
+    r_var = var_q[:M]
+    c_var = r_var if colocated else var_q[M:]
+    # k_g = sum_e w_e a_e / W_g: at most 4 legs per pair, padded with zero weights
+    K = max(int(np.diff(SA.indptr).max()) if ng else 1, 1)
+    kidx, kval = np.zeros((ng, K), int), np.zeros((ng, K))
+    slot = np.arange(SA.nnz) - np.repeat(SA.indptr[:-1], np.diff(SA.indptr))
+    rowg = np.repeat(np.arange(ng), np.diff(SA.indptr))
+    kidx[rowg, slot] = SA.indices
+    kval[rowg, slot] = SA.data / Wd[rowg]
+    resid = oo_ - q[q1] - q[q2]                          # O_e - a_e . q
+    dg = np.bincount(grp, wo * resid, minlength=ng) / Wd
+    vg = 1.0 / Wd + var_rows(kidx, kval)
+    if not colocated:
+        vg = np.where(n_eq == 1, np.inf, vg)  # one-way onset with separate legs: d not identified
     D = np.full((M, M), np.nan)
     V = np.full((M, M), np.inf)
     np.fill_diagonal(D, 0.0)
     np.fill_diagonal(V, 0.0)
-    chi2 = 0.0
-    for (i, j), eqs in pair_eqs.items():
-        Wd = sum(w for _, _, w in eqs)
-        d = sum(w * (o - dot(a, q)) for a, o, w in eqs) / Wd
-        k = {p_: x_ / Wd for p_, x_ in combine([(a, w) for a, _, w in eqs]).items()}
-        v = 1.0 / Wd + var_of(k)
-        if len(eqs) == 1 and not colocated:
-            v = np.inf  # one-way onset with separate legs: d not identified
-        D[pos[i], pos[j]] = D[pos[j], pos[i]] = d
-        V[pos[i], pos[j]] = V[pos[j], pos[i]] = v
-        chi2 += sum(w * (o - dot(a, q) - d) ** 2 for a, o, w in eqs)
+    D[gi, gj] = D[gj, gi] = dg
+    V[gi, gj] = V[gj, gi] = vg
+    chi2 = float(np.sum(wo * (resid - dg[grp]) ** 2))
     # rows with no first onset leave r undetermined in the co-located case
     r = np.where(np.isfinite(r_var), r, np.nan)
     cc = np.where(np.isfinite(c_var), cc, np.nan)
