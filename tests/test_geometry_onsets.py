@@ -60,3 +60,17 @@ def test_sampled_template_matches_gaussian():
     s = on.SampledTemplate(g, 0.005)
     x = np.linspace(-0.05, 0.05, 41)
     assert np.max(np.abs(s.pulse(x)[0] - TMPL.pulse(x)[0])) < 2e-3 * g.max()
+
+
+@pytest.mark.parametrize("tau0", [0.0, 0.01, 0.02])
+def test_window_clipped_at_grid_start_gives_no_infinite_snr(tau0):
+    """A fit window clipped at the start of the grid used to end with a near-exact fit of <= 3
+    bins whose cost and curvature belonged to an earlier window: zero std and SNR ~1e302 on pure
+    noise (seen as 4 bogus 'second onsets' before t = 0 in Fig. 13). Every accepted fit of noise
+    now has a positive std, an SNR of noise size, and a peak inside the data."""
+    rng = np.random.default_rng(3)
+    Y = rng.normal(0.0, 1.0, (500, GRID.n_bins))
+    f = on.fit_onsets(Y, GRID, TMPL, np.full(500, tau0))
+    assert np.all(f.tau_std[f.found] > 0)
+    assert np.all(f.tau[f.found] >= GRID.start)
+    assert f.snr[f.found].max() < 30.0

@@ -294,6 +294,7 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
     Ys = Y / scale[:, None]
     p = np.stack([np.ones(n), tau0, b0 / scale], axis=1)
     for _ in range(3):
+        used = mask  # the window the cost and the curvature below belong to
         p, JTJ, cost = _lm(Ys, C, p, tmpl, model, poisson=False, n_iter=30, mask=mask)
         if poisson:
             # IRLS in count units: weights 1/model (model in counts)
@@ -310,7 +311,7 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
         if np.array_equal(new_mask, mask):
             break
         mask = new_mask
-    nfit = mask.sum(axis=1)
+    nfit = used.sum(axis=1)
     dof = np.maximum(nfit - 3, 1)
     try:
         cov = np.linalg.pinv(JTJ)
@@ -335,7 +336,11 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
     g_peak = float(tmpl.pulse(np.zeros(1))[0][0]) if model == "pulse" else 1.0
     snr = amp * g_peak / np.maximum(s_noise, 1e-300)
     tau = p[:, 1]
-    found = np.isfinite(tau) & np.isfinite(var_tau) & (amp > 0) & (np.abs(tau - tau0) < 3 * W)
+    # a window clipped at the grid's edge can leave too few bins: the fit is then exact
+    # (zero residual, zero variance) and would report an onset of infinite SNR; refuse it
+    found = (np.isfinite(tau) & np.isfinite(var_tau) & (var_tau > 0) & (amp > 0)
+             & (np.abs(tau - tau0) < 3 * W) & (nfit >= 6)
+             & (tau >= C[:, 0]) & (tau <= C[:, -1]))  # a peak outside the data: amplitude unbounded
     tau_std = np.sqrt(np.maximum(var_tau, 0)) if True else None
     return OnsetFit(tau=tau, tau_std=tau_std, amplitude=amp, background=bg, snr=snr, found=found,
                     chi2=chi2)
@@ -491,7 +496,11 @@ def _first_family(Y, capture, tmpl, k_sigma: float = 6.0, right_sigmas: float = 
     idx = np.flatnonzero(has)
     tau[idx[ok]] = fit.tau[ok]
     std[idx[ok]] = fit.tau_std[ok]
-    snr[idx] = fit.snr
+    # SNR against the trace's own noise level as well as the fit residual (whichever is larger):
+    # a near-perfect fit of a few bins must not read as a strong return
+    g_pk = float(tmpl.pulse(np.zeros(1))[0][0]) if model == "pulse" else 1.0
+    snr[idx] = np.minimum(fit.snr, fit.amplitude * g_pk / np.maximum(sig[has], 1e-300))
+    snr[idx[~ok]] = 0.0
     return tau, std, snr
 
 
