@@ -41,6 +41,10 @@ class GeometrySettings:
     max_third: int = 6
     #: Gaussian IRF FWHM (metres of path) when the capture has no irf (None: estimate)
     irf_fwhm: float | None = None
+    #: a distance whose residual exceeds this many std at the fitted positions is an outlier
+    outlier_z: float = 8.0
+    #: least separation (decades) of the two onset-SNR populations for SNR-seeded embedding
+    snr_split_decades: float = 0.5
 
     def validate(self) -> "GeometrySettings":
         if not 0 < self.eps_level < 1:
@@ -48,6 +52,49 @@ class GeometrySettings:
         if self.hidden_method not in ("robust", "paper"):
             raise GeometryError(f"hidden_method must be 'robust' or 'paper'; got {self.hidden_method!r}.")
         return self
+
+
+def trusted_pairs(ids, ill, obs, snr, known, min_decades: float = 0.5, min_degree: int = 4):
+    """Pairs whose second onsets are strong returns: (trusted (M, M) bool, threshold or None).
+
+    A second bounce i -> j carries one form factor less than any three-bounce family, so where
+    a pair has no second bounce (coplanar patches, an occluder between them) the earliest family
+    detected in its trace is a return that is typically 10-1000x weaker. When the off-diagonal
+    onset SNRs (the weaker of O2_ij, O2_ji) split into two populations whose nearest members
+    are at least ``min_decades`` decades apart (the largest gap of the sorted log-SNR, between
+    two populations of at least 5 % each), the upper one is trusted to seed the embedding.
+    Nothing is dropped here: the caller keeps a weak pair when it agrees with the seeded
+    geometry. No split (threshold None, all trusted) when there is no such gap, or when some
+    patch would keep fewer than ``min_degree`` trusted distances.
+    """
+    ids = np.asarray(ids)
+    M = len(ids)
+    pos = {int(v): k for k, v in enumerate(ids)}
+    P = np.full((M, M), np.inf)
+    for a, i in enumerate(ill):
+        for b, j in enumerate(obs):
+            i_, j_ = int(i), int(j)
+            if i_ != j_ and i_ in pos and j_ in pos and np.isfinite(snr[a, b]):
+                x, y = pos[i_], pos[j_]
+                P[x, y] = P[y, x] = min(P[x, y], float(snr[a, b]))
+    all_known = np.asarray(known, bool).copy()
+    np.fill_diagonal(all_known, False)
+    vals = P[np.triu(all_known & np.isfinite(P), 1)]
+    vals = vals[vals > 0]
+    if len(vals) < 20:
+        return all_known, None
+    ls = np.sort(np.log10(vals))
+    n = len(ls)
+    lo_k, hi_k = max(int(0.05 * n), 1), min(int(0.95 * n), n - 1)
+    gaps = ls[lo_k:hi_k] - ls[lo_k - 1:hi_k - 1]
+    k = int(np.argmax(gaps))
+    if gaps[k] < min_decades:
+        return all_known, None
+    thr = float(10 ** (0.5 * (ls[lo_k - 1 + k] + ls[lo_k + k])))
+    trusted = all_known & np.isfinite(P) & (P >= thr)
+    if trusted.sum(axis=1).min() < min_degree:
+        return all_known, None
+    return trusted, thr
 
 
 def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySettings | None = None
@@ -121,7 +168,36 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
                                 "onset, so their distance to the source is unknown and they cannot "
                                 "be placed. Give the capture's visible points (observed_xyz) or "
                                 "check the diagonal traces.")
-        X0, info = em.classical_mds(sol.r, sol.D)
+        # seed the embedding with the pairs whose second onsets are strong returns when the
+        # onset SNRs fall into two clearly separated populations (see ``trusted_pairs``); the
+        # weak ones are then kept only if they agree with that geometry
+        trusted, split = trusted_pairs(ids, ill, obs, snr, np.isfinite(sol.D),
+                                       min_decades=st.snr_split_decades)
+        screened: list = []
+        if split is not None and st.refine:
+            Dt = np.where(trusted, sol.D, np.nan)
+            np.fill_diagonal(Dt, 0.0)
+            Xs, _ = em.classical_mds(sol.r, Dt)
+            Xs, _sinfo = em.refine_bounded(Xs, sol.r, sol.r_std, Dt, sol.D_std, sol.eps, sol.r_eps,
+                                           outlier_z=st.outlier_z)
+            dn = np.linalg.norm(Xs[:, None] - Xs[None], axis=2)
+            with np.errstate(invalid="ignore"):
+                zz = np.abs(dn - sol.D) / np.maximum(sol.D_std, 1e-12)
+            bad = np.isfinite(sol.D) & ~trusted & (zz > st.outlier_z)
+            np.fill_diagonal(bad, False)
+            screened = [(int(a), int(b)) for a, b in zip(*np.nonzero(np.triu(bad, 1)))]
+            for a, b in screened:
+                sol.D[a, b] = sol.D[b, a] = np.nan
+                sol.D_std[a, b] = sol.D_std[b, a] = np.inf
+                sol.eps[a, b] = sol.eps[b, a] = np.inf
+            stats["snr_split"] = StageStats("snr_split", "ok", 0, 0.0, True,
+                                            {"threshold": split, "n_trusted": int(np.triu(trusted, 1).sum()),
+                                             "n_screened": len(screened)})
+            X0 = Xs
+            info = {"n_missing": int(np.triu(~np.isfinite(sol.D), 1).sum()),
+                    "rank_ratio": float("nan")}
+        else:
+            X0, info = em.classical_mds(sol.r, sol.D)
         if M < 3 or info["n_missing"] > 0 and M <= 3:
             amb.append({"kind": "underdetermined-embedding", "patches": ids.tolist(),
                         "message": f"{info['n_missing']} of the {M * (M - 1) // 2} patch-to-patch "
@@ -133,12 +209,13 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
         if st.refine and M >= 2:
             t3 = time.perf_counter()
             try:
-                X, rinfo = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, sol.eps, sol.r_eps)
+                X, rinfo = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, sol.eps, sol.r_eps,
+                                             outlier_z=st.outlier_z)
                 stats["refine"] = StageStats("refine", str(rinfo.get("status")), int(rinfo.get("iterations", 0)),
                                              time.perf_counter() - t3, True,
                                              {"widen": rinfo.get("widen"), "n_outside": rinfo.get("n_outside", 0),
                                               "n_outliers": len(rinfo.get("outliers", []))})
-                out_pairs = rinfo.get("outliers", [])
+                out_pairs = screened + list(rinfo.get("outliers", []))
                 if out_pairs:
                     # a distance no point set fits (an earlier family in both O2_ij and O2_ji):
                     # reported unknown rather than kept with a bound it violates
@@ -150,9 +227,11 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
                                 "patches": sorted({int(ids[k]) for p_ in out_pairs for k in p_}),
                                 "pairs": [[int(ids[a]), int(ids[b])] for a, b in out_pairs],
                                 "message": f"{len(out_pairs)} patch-to-patch distances disagree with every "
-                                           "embedding (residual > 8 std): their second onsets are most "
-                                           "likely an earlier family (a return via a hidden patch). "
-                                           "They were dropped and the positions re-solved."})
+                                           f"embedding (residual > {st.outlier_z:g} std): their second "
+                                           "onsets are most likely an earlier family (a return via a "
+                                           "hidden patch, or via a third patch between two that do not "
+                                           "see each other). They were dropped and the positions "
+                                           "re-solved."})
                 if rinfo.get("widen", 1.0) > 1.0:
                     amb.append({"kind": "eps-inconsistent", "patches": [],
                                 "message": f"the eps bounds were mutually infeasible; positions were "
