@@ -108,7 +108,10 @@ def time_vs_M(Ms=(10, 50, 100, 200, 500)):
                      "ipopt_s": float(sum(a["wall_time_s"] for a in info.get("attempts", []))),
                      "geometry_s": t3 - t0, "rmse_m": rmse, "rmse_mds_m": rmse_mds,
                      "refine_status": str(info.get("status")), "iterations": info.get("iterations"),
-                     "n_constraints": info.get("n_constraints"), "n_outside": info.get("n_outside")})
+                     "n_constraints": info.get("n_constraints"), "n_outside": info.get("n_outside"),
+                     "widen": info.get("widen"),
+                     "ipopt_attempts": [[a["return_status"], a["iterations"], round(a["wall_time_s"], 2)]
+                                        for a in info.get("attempts", [])]})
         print(f"  M={M}: onsets {t5 - t4:.2f} s, geometry {t3 - t0:.2f} s", flush=True)
     return rows
 
@@ -211,11 +214,11 @@ def main(sections=None):
             print(f"{r['snr_db']:6d} | {r['rmse_m']:.3e} | {r['crb_m']:.3e} | {r['ratio']:.3f} | {r['ratio_window_1p5']:.3f}")
     if "time_vs_M" in sections:
         print("M | onsets s (M^2 x 512 bins) | distances s | MDS s | refine s (IPOPT s) | geometry s | "
-              "RMSE MDS m | RMSE refined m | IPOPT iter / constraints / outside")
+              "RMSE MDS m | RMSE refined m | IPOPT iter / constraints / outside / widen")
         for r in res["time_vs_M"]:
             print(f"{r['M']} | {r['onsets_s']:.2f} | {r['distances_s']:.3f} | {r['mds_s']:.3f} | "
                   f"{r['refine_s']:.2f} ({r['ipopt_s']:.2f}) | {r['geometry_s']:.2f} | {r['rmse_mds_m']:.2e} | "
-                  f"{r['rmse_m']:.2e} | {r['iterations']} / {r['n_constraints']} / {r['n_outside']}")
+                  f"{r['rmse_m']:.2e} | {r['iterations']} / {r['n_constraints']} / {r['n_outside']} / x{r.get('widen', 1):g}")
     if "real_scans" in sections:
         print("scan | shape | import s | estimate s | depth point m | depth plane m | onset p2/p20/p50 m | tol m")
         for r in res["real_scans"]:
