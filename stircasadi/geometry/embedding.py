@@ -209,7 +209,7 @@ def _bounded_nlp(X1, scale, I, J, d, ds, de, R, r, rs, re, act, act_r, hessian: 
     expressions over index vectors (one graph node per vector operation, not per pair), so
     building them costs O(1) nodes whatever M. The Hessian of the Lagrangian is dense in the
     3M coordinates (every pair couples two patches) and CasADi's automatic one (SX, coloured
-    forward-over-reverse) costs O(M^3) graph nodes: 12 s to build at M = 100, minutes at 200.
+    forward-over-reverse) costs O(M^3) graph nodes: 12 s to build at M = 100, ~100 s at 200.
     ``hessian="structured"`` supplies it in closed form instead (the same exact Hessian, so the
     same iterates): for phi(|v|) with v = x_i - x_j,
 
