@@ -33,11 +33,13 @@ from scipy.special import ndtr
 from ..errors import GeometryError
 
 __all__ = ["GaussTemplate", "SampledTemplate", "make_template", "fit_onsets", "detect_pulses",
+           "detect_pulses_batch",
            "trace_onsets", "first_onsets", "second_onsets", "third_onsets", "noise_level",
            "OnsetFit", "onset_crb"]
 
 _SQ2PI = math.sqrt(2.0 * math.pi)
 _FWHM = 2.0 * math.sqrt(2.0 * math.log(2.0))
+_CHUNK_SAMPLES = 1 << 22  # traces x bins handled at once by the STIR-level functions
 
 
 def _phi(z):
@@ -209,13 +211,37 @@ class OnsetFit:
     chi2: np.ndarray
 
 
+def _normal_eq(g, dg, a, w, r, npar):
+    """J^T W J (n, npar, npar) and J^T W r (n, npar) for J = [g, -a dg, 1][:npar]."""
+    J = np.stack([g, -a * dg, np.ones_like(g)][:npar], axis=2)
+    return np.einsum("nlp,nl,nlq->npq", J, w, J), np.einsum("nlp,nl,nl->np", J, w, r)
+
+
+def _solve_rows(A, b):
+    """Batched solve of A x = b, rows whose A is singular get a zero step (as a lone row would)."""
+    try:
+        return np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.zeros_like(b)
+        for k in range(A.shape[0]):
+            try:
+                out[k] = np.linalg.solve(A[k], b[k])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def _lm(y, c, p, tmpl, model, poisson, n_iter=40, fix_b=False, mask=None):
-    """Batched Levenberg-Marquardt on y (n, L) with bin centres c (n, L); p = (n, 3) [a, tau, b]."""
+    """Batched Levenberg-Marquardt on y (n, L) with bin centres c (n, L); p = (n, 3) [a, tau, b].
+
+    Each row stops on its own (onset step < 1e-6 bin after at least 5 iterations) and is then
+    dropped from the batch, so a row's result does not depend on the other rows it is fitted with."""
     f = tmpl.pulse if model == "pulse" else tmpl.edge
     n = y.shape[0]
-    lam = np.full(n, 1e-3)
+    npar = 2 if fix_b else 3
+    p = p.copy()
 
-    def resid(p):
+    def resid(p, y, c, mask):
         g, dg = f(c - p[:, 1:2])
         m = p[:, 0:1] * g + p[:, 2:3]
         w = 1.0 / np.maximum(m, 1.0) if poisson else np.ones_like(m)
@@ -223,33 +249,43 @@ def _lm(y, c, p, tmpl, model, poisson, n_iter=40, fix_b=False, mask=None):
             w = w * mask
         return y - m, g, dg, w
 
-    r, g, dg, w = resid(p)
+    r, g, dg, w = resid(p, y, c, mask)
     cost = np.sum(w * r * r, axis=1)
-    npar = 2 if fix_b else 3
-    for _ in range(n_iter):
-        J = np.stack([g, -p[:, 0:1] * dg, np.ones_like(g)][:npar], axis=2)
-        JTJ = np.einsum("nlp,nl,nlq->npq", J, w, J)
-        JTr = np.einsum("nlp,nl,nl->np", J, w, r)
+    # working copies of the rows still iterating (compacted as rows stop)
+    act = np.arange(n)
+    ya, ca, ma = y, c, mask
+    pa, ra, ga, dga, wa, costa = p.copy(), r, g, dg, w, cost.copy()
+    lam = np.full(n, 1e-3)
+    eye = np.eye(npar)[None]
+    for it in range(n_iter):
+        JTJ, JTr = _normal_eq(ga, dga, pa[:, 0:1], wa, ra, npar)
         diag = np.einsum("npp->np", JTJ)
-        A = JTJ + lam[:, None, None] * np.eye(npar)[None] * (diag[:, :, None] + 1e-30)
-        try:
-            step = np.linalg.solve(A, JTr[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.zeros_like(JTr)
+        A = JTJ + lam[:, None, None] * eye * (diag[:, :, None] + 1e-30)
+        step = _solve_rows(A, JTr)
         # cap the onset step at one IRF width
         step[:, 1] = np.clip(step[:, 1], -tmpl.width, tmpl.width)
-        pn = p.copy()
+        pn = pa.copy()
         pn[:, :npar] += step
-        rn, gn, dgn, wn = resid(pn)
+        rn, gn, dgn, wn = resid(pn, ya, ca, ma)
         costn = np.sum(wn * rn * rn, axis=1)
-        ok = np.isfinite(costn) & (costn <= cost)
-        p[ok] = pn[ok]
-        r[ok], g[ok], dg[ok], w[ok], cost[ok] = rn[ok], gn[ok], dgn[ok], wn[ok], costn[ok]
+        ok = np.isfinite(costn) & (costn <= costa)
+        pa[ok] = pn[ok]
+        ra[ok], ga[ok], dga[ok], wa[ok], costa[ok] = rn[ok], gn[ok], dgn[ok], wn[ok], costn[ok]
         lam = np.where(ok, lam * 0.3, lam * 10.0)
-        if np.all(np.abs(step[:, 1]) < 1e-6 * tmpl.w) and _ > 3:
-            break
-    J = np.stack([g, -p[:, 0:1] * dg, np.ones_like(g)][:npar], axis=2)
-    JTJ = np.einsum("nlp,nl,nlq->npq", J, w, J)
+        done = (np.abs(step[:, 1]) < 1e-6 * tmpl.w) if it > 3 else np.zeros(len(act), bool)
+        if done.any() or it == n_iter - 1:
+            fin = done if it < n_iter - 1 else np.ones(len(act), bool)
+            ia = act[fin]
+            p[ia], r[ia], g[ia], dg[ia], w[ia], cost[ia] = pa[fin], ra[fin], ga[fin], dga[fin], wa[fin], costa[fin]
+            keep = ~fin
+            if not keep.any():
+                break
+            act = act[keep]
+            ya, ca = ya[keep], ca[keep]
+            ma = ma[keep] if ma is not None else None
+            pa, ra, ga, dga, wa, costa, lam = (pa[keep], ra[keep], ga[keep], dga[keep], wa[keep],
+                                               costa[keep], lam[keep])
+    JTJ, _ = _normal_eq(g, dg, p[:, 0:1], w, r, npar)
     return p, JTJ, cost
 
 
@@ -293,9 +329,15 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
     scale = np.maximum(a0, 1e-300)
     Ys = Y / scale[:, None]
     p = np.stack([np.ones(n), tau0, b0 / scale], axis=1)
+    JTJ, cost = np.zeros((n, 3, 3)), np.zeros(n)
+    used = mask.copy()  # the window the cost and the curvature below belong to
+    rows = np.arange(n)  # rows whose window still moves (each row on its own, as if fitted alone)
     for _ in range(3):
-        used = mask  # the window the cost and the curvature below belong to
-        p, JTJ, cost = _lm(Ys, C, p, tmpl, model, poisson=False, n_iter=30, mask=mask)
+        mk = mask[rows]
+        used[rows] = mk
+        pr, JTJ[rows], cost[rows] = _lm(Ys[rows], C[rows], p[rows], tmpl, model, poisson=False,
+                                        n_iter=30, mask=mk)
+        p[rows] = pr
         if poisson:
             # IRLS in count units: weights 1/model (model in counts)
             pc = p.copy()
@@ -306,11 +348,13 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
             p[:, 0] /= scale
             p[:, 2] /= scale
             break
-        new_right = p[:, 1] + (right_sigmas if model == "pulse" else 2.5) * W
-        new_mask = C <= new_right[:, None]
-        if np.array_equal(new_mask, mask):
+        new_right = p[rows, 1] + (right_sigmas if model == "pulse" else 2.5) * W
+        new_mask = C[rows] <= new_right[:, None]
+        moved = np.any(new_mask != mk, axis=1)
+        if not moved.any():
             break
-        mask = new_mask
+        rows = rows[moved]
+        mask[rows] = new_mask[moved]
     nfit = used.sum(axis=1)
     dof = np.maximum(nfit - 3, 1)
     try:
@@ -380,17 +424,34 @@ def detect_pulses(y: np.ndarray, grid, tmpl, max_pulses: int = 1, k_sigma: float
 
     Each pass finds the earliest bin of the residual's matched-filter output above
     background + k_sigma * noise, fits the family's onset there, subtracts the fitted pulse and
-    repeats after it. Returns a list of dicts (tau, tau_std, amplitude, snr).
-    """
-    y = np.asarray(y, float)
+    repeats after it. Returns a list of dicts (tau, tau_std, amplitude, snr). Many traces:
+    ``detect_pulses_batch`` (the same passes on all traces at once)."""
+    return detect_pulses_batch(np.asarray(y, float)[None], grid, tmpl, max_pulses=max_pulses,
+                               k_sigma=k_sigma, t_min=t_min, poisson=poisson, rel_min=rel_min,
+                               model=model, right_sigmas=right_sigmas)[0]
+
+
+def detect_pulses_batch(Y: np.ndarray, grid, tmpl, max_pulses: int = 1, k_sigma: float = 6.0,
+                        t_min: float | None = None, poisson: bool = False, rel_min: float = 0.0,
+                        model: str = "pulse", right_sigmas: float = 1.5) -> list[list[dict]]:
+    """``detect_pulses`` on every row of Y (n, n_bins): one list of dicts per row.
+
+    Pass k runs on the rows still searching (a row stops when nothing is left above its
+    threshold or a family is weaker than ``rel_min`` times its first): matched filter, first
+    crossing and onset fit (``fit_onsets``, whose rows are fitted independently) for all of them
+    at once, so each row gets what ``detect_pulses`` gives it alone."""
+    Y = np.atleast_2d(np.asarray(Y, float))
+    n, nb = Y.shape
     w = grid.bin_width
-    c = grid.start + (np.arange(len(y)) + 0.5) * w
-    sig = float(noise_level(y))
-    bg = float(np.median(y[: max(8, len(y) // 8)])) if t_min is None else \
-        float(np.median(y[c < t_min])) if np.any(c < t_min) else float(np.median(y))
-    resid = y.copy()
-    out = []
-    tlo = -np.inf if t_min is None else t_min
+    c = grid.start + (np.arange(nb) + 0.5) * w
+    sig = noise_level(Y)
+    if t_min is None:
+        bg = np.median(Y[:, : max(8, nb // 8)], axis=1)
+    else:
+        early = c < t_min
+        bg = np.median(Y[:, early] if early.any() else Y, axis=1)
+    resid = Y.copy()
+    tlo = np.full(n, -np.inf if t_min is None else float(t_min))
     W = tmpl.width if tmpl is not None else w
     sm_noise = sig
     if tmpl is not None:
@@ -399,43 +460,54 @@ def detect_pulses(y: np.ndarray, grid, tmpl, max_pulses: int = 1, k_sigma: float
         k, _ = tmpl.pulse(np.arange(-half, half + 1) * w)
         k = k / k.sum()
         sm_noise = sig * math.sqrt(float(np.sum(k * k)))
-    first_amp = None
+    span = int(math.ceil(8 * W / w))
+    first_amp = np.zeros(n)
+    has_first = np.zeros(n, bool)
+    out: list[list[dict]] = [[] for _ in range(n)]
+    act = np.arange(n)
     for _ in range(max_pulses):
-        sm = _smooth(resid, tmpl, w)
+        if act.size == 0:
+            break
+        sm = _smooth(resid[act], tmpl, w)
         if poisson:
-            thr = bg * 0 + bg + k_sigma * np.sqrt(np.maximum(sm, 1.0)) * (sm_noise / max(sig, 1e-300) if sig > 0 else 1)
+            fac = np.where(sig[act] > 0, sm_noise[act] / np.maximum(sig[act], 1e-300), 1.0)
+            thr = bg[act, None] + k_sigma * np.sqrt(np.maximum(sm, 1.0)) * fac[:, None]
         else:
-            thr = bg + k_sigma * max(sm_noise, 1e-300)
-        above = np.flatnonzero((sm > thr) & (c >= tlo))
-        if above.size == 0:
+            thr = (bg[act] + k_sigma * np.maximum(sm_noise[act], 1e-300))[:, None]
+        above = (sm > thr) & (c[None, :] >= tlo[act, None])
+        has = above.any(axis=1)
+        act, sm, above = act[has], sm[has], above[has]
+        if act.size == 0:
             break
-        k = int(above[0])
-        # walk to the local peak of the smoothed residual
-        kp = int(_first_peak(sm[None], np.array([k]), int(math.ceil(8 * W / w)))[0]) \
-            if model == "pulse" else k
-        tau0 = c[kp]
+        k = np.argmax(above, axis=1)
         if tmpl is None:
-            out.append({"tau": float(c[k]), "tau_std": w / math.sqrt(12.0),
-                        "amplitude": float(y[k] - bg), "snr": float((y[k] - bg) / max(sig, 1e-300))})
-            resid[k] = bg
-            tlo = c[k] + w
+            for a, kk in zip(act, k):
+                out[a].append({"tau": float(c[kk]), "tau_std": w / math.sqrt(12.0),
+                               "amplitude": float(Y[a, kk] - bg[a]),
+                               "snr": float((Y[a, kk] - bg[a]) / max(sig[a], 1e-300))})
+                resid[a, kk] = bg[a]
+                tlo[a] = c[kk] + w
             continue
-        fit = fit_onsets(resid[None], grid, tmpl, np.array([tau0]), model=model, poisson=poisson,
+        # walk to the local peak of the smoothed residual
+        kp = _first_peak(sm, k, span) if model == "pulse" else k
+        tau0 = c[kp]
+        fit = fit_onsets(resid[act], grid, tmpl, tau0, model=model, poisson=poisson,
                          right_sigmas=right_sigmas, background=None)
-        tau = float(fit.tau[0])
-        if not fit.found[0]:
-            tau = tau0
-        amp = float(fit.amplitude[0])
-        if first_amp is None:
-            first_amp = amp
-        elif amp < rel_min * first_amp:
-            break
-        out.append({"tau": tau, "tau_std": float(fit.tau_std[0]), "amplitude": amp,
-                    "snr": float(fit.snr[0])})
+        tau = np.where(fit.found, fit.tau, tau0)
+        amp = fit.amplitude
+        weak = has_first[act] & (amp < rel_min * first_amp[act])
+        new = ~has_first[act]
+        first_amp[act[new]] = amp[new]
+        has_first[act[new]] = True
+        keep = ~weak
+        act, tau, amp = act[keep], tau[keep], amp[keep]
+        tau_std, snr = fit.tau_std[keep], fit.snr[keep]
+        for a, t_, s_, a_, q_ in zip(act.tolist(), tau.tolist(), tau_std.tolist(), amp.tolist(), snr.tolist()):
+            out[a].append({"tau": t_, "tau_std": s_, "amplitude": a_, "snr": q_})
         if model == "pulse":
-            g, _ = tmpl.pulse(c - tau)
-            resid = resid - amp * g
-        tlo = tau + 0.5 * W
+            g, _ = tmpl.pulse(c[None, :] - tau[:, None])
+            resid[act] -= amp[:, None] * g
+        tlo[act] = tau + 0.5 * W
     return out
 
 
@@ -524,7 +596,11 @@ def second_onsets(capture, tmpl=None, **kw):
         Y = capture.stir.reshape(-1, capture.n_bins)
     else:
         Y = np.stack([capture.trace(i, j) for i in ill for j in obs])
-    tau, std, snr = _first_family(Y, capture, tmpl, **kw)
+    # chunks of ~4M samples: every row is fitted on its own, so chunking changes nothing but
+    # the size of the temporaries (a 1 GB STIR at M = 500 otherwise makes several more)
+    chunk = max(1, _CHUNK_SAMPLES // max(Y.shape[1], 1))
+    parts = [_first_family(Y[s0:s0 + chunk], capture, tmpl, **kw) for s0 in range(0, Y.shape[0], chunk)]
+    tau, std, snr = (np.concatenate(x) for x in zip(*parts))
     sh = (len(ill), len(obs))
     return ill, obs, tau.reshape(sh), std.reshape(sh), snr.reshape(sh)
 
@@ -553,12 +629,21 @@ def third_onsets(capture, tmpl=None, after: np.ndarray | None = None, max_pulses
     poisson = _is_poisson(capture)
     W = tmpl.width if tmpl is not None else capture.grid.bin_width
     tol = exclude_tol if exclude_tol is not None else 1.5 * W
+    n_obs = len(obs)
+    if capture.stir is not None:
+        Y = capture.stir.reshape(-1, capture.n_bins)
+    else:
+        Y = np.stack([capture.trace(i, j) for i in ill for j in obs])
+    # all traces at once, in chunks of ~4M samples to bound the temporaries
+    chunk = max(1, _CHUNK_SAMPLES // max(Y.shape[1], 1))
+    pulses_all: list[list[dict]] = []
+    for s0 in range(0, Y.shape[0], chunk):
+        pulses_all += detect_pulses_batch(Y[s0:s0 + chunk], capture.grid, tmpl,
+                                          max_pulses=max_pulses + 1, poisson=poisson, k_sigma=k_sigma)
     out = {}
     for a, i in enumerate(ill):
         for b, j in enumerate(obs):
-            y = capture.trace(i, j)
-            pulses = detect_pulses(y, capture.grid, tmpl, max_pulses=max_pulses + 1,
-                                   poisson=poisson, k_sigma=k_sigma)
+            pulses = pulses_all[a * n_obs + b]
             t_after = None if after is None else after[a, b]
             keep = []
             for p in pulses:
