@@ -28,11 +28,15 @@ import numpy as np
 
 from ..errors import GeometryError, SolverError
 
-__all__ = ["classical_mds", "refine_bounded", "direct_positions"]
+__all__ = ["classical_mds", "embed", "refine_bounded", "direct_positions"]
 
 
-def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.ndarray, dict]:
-    """Positions (M, 3) with the source at the origin from leg lengths r and distances D."""
+def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50, fill=None) -> tuple[np.ndarray, dict]:
+    """Positions (M, 3) with the source at the origin from leg lengths r and distances D.
+
+    ``fill``: first guess of the missing distances -- None: sqrt(r_i^2 + r_j^2) (right angle at
+    the source); a float t in [0, 1]: |r_i - r_j| + t (r_i + r_j - |r_i - r_j|) (between the
+    triangle bounds); or an (M, M) array."""
     r = np.asarray(r, float)
     D = np.array(D, float)
     M = len(r)
@@ -45,7 +49,12 @@ def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.nd
     Df = D.copy()
     lo_b, hi_b = np.abs(r[:, None] - r[None, :]), r[:, None] + r[None, :]
     Df = np.clip(Df, lo_b, hi_b)  # triangle inequality with the source
-    Df[miss] = np.sqrt(r[:, None] ** 2 + r[None, :] ** 2)[miss]
+    if fill is None:
+        Df[miss] = np.sqrt(r[:, None] ** 2 + r[None, :] ** 2)[miss]
+    elif np.ndim(fill) == 0:
+        Df[miss] = (lo_b + float(fill) * (hi_b - lo_b))[miss]
+    else:
+        Df[miss] = np.clip(np.asarray(fill, float), lo_b, hi_b)[miss]
     X = np.zeros((M, 3))
     for it in range(n_iter if miss.any() else 1):
         G = 0.5 * (r[:, None] ** 2 + r[None, :] ** 2 - Df ** 2)
@@ -66,6 +75,49 @@ def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50) -> tuple[np.nd
     ev = np.sort(np.linalg.eigvalsh(G))[::-1]
     info = {"eigenvalues": ev[:6].tolist(), "n_missing": int(miss.sum() // 2),
             "rank_ratio": float(ev[3] / ev[0]) if M > 3 and ev[0] > 0 else 0.0}
+    return X, info
+
+
+def embed(r: np.ndarray, r_std: np.ndarray, D: np.ndarray, D_std: np.ndarray,
+          fills=(0.5, None, 0.0, 0.25), chi2_ok: float = 3.0) -> tuple[np.ndarray, dict]:
+    """Positions from distances with missing entries: classical MDS completed from several first
+    guesses of the missing distances (``fills``, see ``classical_mds``), each polished by the
+    weighted least squares of ``refine_bounded``'s first step; the start with the lowest mean
+    normalised squared residual (chi2 per term) wins, and the search stops at the first start
+    whose chi2 is below ``chi2_ok`` (a fit consistent with the onset errors).
+
+    Why: with whole blocks of distances missing (coplanar patches see each other under zero
+    angle and have no second bounce) the completion can settle in a wrong basin from one guess
+    (Fig. 13 at noise 1e-7, seed 3: MDS 0.75 m off from the right-angle guess, least squares
+    stuck at 0.33 m, chi2 8e4; from the mid-bound guess 0.3 mm, then 2.4e-5 m, chi2 0.05).
+    Returns (X, info) with info: n_missing, rank_ratio (of the chosen MDS), fill, chi2, starts.
+    """
+    M = len(r)
+    iu, ju = np.triu_indices(M, 1)
+    known = np.isfinite(D[iu, ju]) & np.isfinite(D_std[iu, ju])
+    I, J = iu[known], ju[known]
+    d, ds = D[I, J], np.maximum(D_std[I, J], 1e-9)
+    rk = np.isfinite(r) & np.isfinite(r_std)
+    R = np.flatnonzero(rk)
+    rs = np.maximum(r_std[R], 1e-9)
+    miss = ~known
+    best = None
+    starts = []
+    for fill in (fills if miss.any() else fills[:1]):
+        X0, info = classical_mds(r, D, fill=fill)
+        if len(I) + len(R) >= 3 * M:
+            X1, ls = _ls_refine(X0, I, J, d, ds, R, r[R], rs)
+            chi2 = float(2.0 * ls.cost / max(len(I) + len(R), 1))
+        else:
+            X1, chi2 = X0, float("nan")
+        starts.append({"fill": fill, "chi2": chi2})
+        if best is None or (np.isfinite(chi2) and not chi2 >= best[2]):
+            best = (X1, info, chi2, fill)
+        if not np.isfinite(chi2) or chi2 < chi2_ok:
+            break
+    X, info, chi2, fill = best
+    info = dict(info)
+    info.update({"fill": fill, "chi2": chi2, "starts": starts})
     return X, info
 
 
