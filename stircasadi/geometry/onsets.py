@@ -493,21 +493,27 @@ def detect_pulses_batch(Y: np.ndarray, grid, tmpl, max_pulses: int = 1, k_sigma:
         tau0 = c[kp]
         fit = fit_onsets(resid[act], grid, tmpl, tau0, model=model, poisson=poisson,
                          right_sigmas=right_sigmas, background=None)
-        tau = np.where(fit.found, fit.tau, tau0)
-        amp = fit.amplitude
+        # a failed fit (diverged from the crossing: no family there, amplitudes of 1e11-1e18 were
+        # seen) is neither reported nor subtracted; the search goes on after the crossing
+        ok = fit.found
+        failed = act[~ok]
+        tlo[failed] = tau0[~ok] + 0.5 * W
+        act, tau, amp = act[ok], fit.tau[ok], fit.amplitude[ok]
+        tau_std, snr = fit.tau_std[ok], fit.snr[ok]
         weak = has_first[act] & (amp < rel_min * first_amp[act])
         new = ~has_first[act]
         first_amp[act[new]] = amp[new]
         has_first[act[new]] = True
         keep = ~weak
         act, tau, amp = act[keep], tau[keep], amp[keep]
-        tau_std, snr = fit.tau_std[keep], fit.snr[keep]
+        tau_std, snr = tau_std[keep], snr[keep]
         for a, t_, s_, a_, q_ in zip(act.tolist(), tau.tolist(), tau_std.tolist(), amp.tolist(), snr.tolist()):
             out[a].append({"tau": t_, "tau_std": s_, "amplitude": a_, "snr": q_})
         if model == "pulse":
             g, _ = tmpl.pulse(c[None, :] - tau[:, None])
             resid[act] -= amp[:, None] * g
         tlo[act] = tau + 0.5 * W
+        act = np.sort(np.concatenate([act, failed]))
     return out
 
 
