@@ -78,8 +78,8 @@ def test_window_clipped_at_grid_start_gives_no_infinite_snr(tau0):
 
 def _detect_pulses_loop(y, grid, tmpl, max_pulses=1, k_sigma=6.0, t_min=None, poisson=False,
                         rel_min=0.0, model="pulse", right_sigmas=1.5):
-    """The former per-trace ``detect_pulses`` (one trace, Python loop over passes): reference
-    for the batched one."""
+    """The former per-trace ``detect_pulses`` (one trace, Python loop over passes; failed fits
+    skipped as the package now does): reference for the batched one."""
     import math
     y = np.asarray(y, float)
     w = grid.bin_width
@@ -110,7 +110,10 @@ def _detect_pulses_loop(y, grid, tmpl, max_pulses=1, k_sigma=6.0, t_min=None, po
         tau0 = c[kp]
         fit = on.fit_onsets(resid[None], grid, tmpl, np.array([tau0]), model=model, poisson=poisson,
                             right_sigmas=right_sigmas, background=None)
-        tau = float(fit.tau[0]) if fit.found[0] else tau0
+        if not fit.found[0]:  # a diverged fit: skipped, the search goes on after the crossing
+            tlo = tau0 + 0.5 * W
+            continue
+        tau = float(fit.tau[0])
         amp = float(fit.amplitude[0])
         if first_amp is None:
             first_amp = amp
