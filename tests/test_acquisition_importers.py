@@ -240,3 +240,69 @@ def test_fuzz_histogram_conversion(hist, res):
     except ImportFormatError:
         return
     assert np.all(cap.stir >= 0) and np.all(np.isfinite(cap.stir))
+
+
+@pytest.mark.parametrize("layout", ["sy_sx_first", "colors_first"])
+def test_znlos_confocal_grid_points_stay_with_their_traces(tmp_path, layout):
+    """Each trace's wall point must be the grid point that was scanned for it: trace (a, b) of the
+    file has its only return at bin 2 + 3 (a n1 + b) and grid point (a, b) is (a, b, 0.5) m. (The
+    confocal readers used to drop the grid, so the wall points were unknown.)"""
+    n0, n1, nt = 3, 3, 60                             # the format detection needs a square scan
+    D = np.zeros((n0, n1, 6, nt, 1))                 # (sy, sx, bounces, t, colors)
+    G = np.zeros((3, n0, n1))                         # MATLAB (3, A, B) order of the scan axes
+    for a in range(n0):
+        for b in range(n1):
+            D[a, b, 1, 2 + 3 * (a * n1 + b), 0] = 1.0
+            G[:, a, b] = (a, b, 0.5)
+    if layout == "colors_first":
+        D = np.transpose(D, (4, 3, 2, 0, 1))          # (colors, t, bounces, sx, sy)
+    p = tmp_path / "z.hdf5"
+    with h5py.File(p, "w") as f:
+        f["data"] = D
+        f["deltaT"] = 0.01
+        f["cameraGridPositions"] = G
+    cap = import_file(p, "znlos")
+    assert cap.observed_xyz.shape == (n0 * n1, 3)
+    np.testing.assert_array_equal(cap.illuminated_xyz, cap.observed_xyz)
+    for i in range(n0 * n1):
+        k = int(np.argmax(cap.trace(i, i)))
+        a, b = cap.observed_xyz[i, :2].astype(int)
+        assert k == 2 + 3 * (a * n1 + b), (i, k, a, b)
+
+
+def test_znlos_exhaustive_laser_and_camera_grids_stay_with_their_traces(tmp_path):
+    """Exhaustive (ly, lx, sy, sx, bounces, t, colors): trace (laser (p, q), camera (a, b)) has
+    its return at bin 2 + 3 (p nq + q) + 20 (a n1 + b); the laser grid is (p, q, 0) and the camera
+    grid (a, b, 1)."""
+    L0, L1, n0, n1, nt = 2, 3, 2, 3, 160
+    D = np.zeros((L0, L1, n0, n1, 6, nt, 1))
+    for p_ in range(L0):
+        for q in range(L1):
+            for a in range(n0):
+                for b in range(n1):
+                    D[p_, q, a, b, 2, 2 + 3 * (p_ * L1 + q) + 20 * (a * n1 + b), 0] = 1.0
+    LG = np.stack(list(np.meshgrid(np.arange(L0), np.arange(L1), indexing="ij")) + [np.zeros((L0, L1))])
+    CG = np.stack(list(np.meshgrid(np.arange(n0), np.arange(n1), indexing="ij")) + [np.ones((n0, n1))])
+    path = tmp_path / "e.hdf5"
+    with h5py.File(path, "w") as f:
+        f["data"] = D
+        f["deltaT"] = 0.01
+        f["laserGridPositions"] = LG
+        f["cameraGridPositions"] = CG
+    cap = import_file(path, "znlos")
+    assert cap.illuminated_xyz.shape == (L0 * L1, 3) and cap.observed_xyz.shape == (n0 * n1, 3)
+    for x in range(L0 * L1):
+        for y in range(n0 * n1):
+            p_, q = cap.illuminated_xyz[x, :2].astype(int)
+            a, b = cap.observed_xyz[y, :2].astype(int)
+            assert int(np.argmax(cap.stir[x, y])) == 2 + 3 * (p_ * L1 + q) + 20 * (a * n1 + b)
+
+
+def test_znlos_grid_of_the_wrong_size_is_refused(tmp_path):
+    p = tmp_path / "z.hdf5"
+    with h5py.File(p, "w") as f:
+        f["data"] = np.ones((3, 3, 6, 30, 1))
+        f["deltaT"] = 0.01
+        f["cameraGridPositions"] = np.zeros((3, 4, 3))
+    with pytest.raises(ImportFormatError, match="cameraGridPositions"):
+        import_file(p, "znlos")

@@ -339,6 +339,27 @@ def read_ytal(path, **_) -> Capture:
     return _capture(path, "ytal", stir=stir, illuminated_xyz=lg, observed_xyz=s, **common)
 
 
+def _scan_grid(path, name, arr, scan_shape, transposed: bool) -> np.ndarray | None:
+    """A Zaragoza grid (``cameraGridPositions`` / ``laserGridPositions``) as (n, 3) in the order of
+    the capture's ids. The grid's scan axes come in the order of the data's scan axes in the file
+    (as MATLAB wrote both; (3, A, B) or (A, B, 3)); ``transposed`` when the ids run over the
+    second file axis first (as the traces are flattened)."""
+    if arr is None:
+        return None
+    a = _check_values(path, name, arr)
+    A, B = scan_shape
+    if a.ndim == 3 and a.shape[0] == 3 and a.shape[1:] == (A, B):
+        a = np.moveaxis(a, 0, -1)
+    elif a.ndim == 2 and a.shape in ((A * B, 3), (3, A * B)):
+        a = (a if a.shape[1] == 3 else a.T).reshape(A, B, 3)
+    elif not (a.ndim == 3 and a.shape == (A, B, 3)):
+        raise _fail(path, f"{name} must hold one 3-D point per scan position, shaped (3, {A}, {B}) or "
+                          f"({A}, {B}, 3) like the data's scan axes; got {a.shape}.")
+    if transposed:
+        a = np.swapaxes(a, 0, 1)
+    return a.reshape(-1, 3)
+
+
 def read_znlos(path, **_) -> Capture:
     with _h5(path) as f:
         D = _check_values(path, "data", _array(path, f, "data"))
@@ -356,15 +377,18 @@ def read_znlos(path, **_) -> Capture:
         else:
             raise _fail(path, f"5-D 'data' must be (sy, sx, bounces, t, colors) or (colors, t, bounces, "
                               f"sx, sy) with a square scan; got shape {D.shape}.")
+        first = D.shape[0] == D.shape[1]
+        scan = D.shape[:2] if first else D.shape[3:]
         H = H.sum(axis=(0, 1))           # (t, sx, sy)
         nt = H.shape[0]
         traces = np.moveaxis(H, 0, -1).reshape(-1, nt)
         n = traces.shape[0]
         ids = np.arange(n)
         grid = _grid(path, t0, dt, nt)
-        cg = _xyz(path, "cameraGridPositions", cgrid) if cgrid is not None else None
+        # confocal: the illuminated and the observed point of trace i are the same wall point
+        cg = _scan_grid(path, "cameraGridPositions", cgrid, scan, transposed=not first)
         return _capture(path, "znlos", grid=grid, traces=traces, pairs=np.stack([ids, ids], 1),
-                        legs_included=True,
+                        legs_included=True, observed_xyz=cg, illuminated_xyz=cg,
                         source_xyz=None if las is None else _xyz(path, "laserPosition", las, 1)[0],
                         camera_xyz=None if cam is None else _xyz(path, "cameraPosition", cam, 1)[0],
                         provenance={"confocal": True,
@@ -378,11 +402,17 @@ def read_znlos(path, **_) -> Capture:
             raise _fail(path, f"7-D 'data' must have its 6 bounce orders on axis 4 (ly, lx, sy, sx, "
                               f"bounces, t, colors) or axis 2 (colors, t, bounces, sx, sy, lx, ly); "
                               f"got shape {D.shape}.")
+        first = D.shape[4] == 6
+        lscan, cscan = (D.shape[0:2], D.shape[2:4]) if first else (D.shape[5:7], D.shape[3:5])
         H = H.sum(axis=(0, 1))           # (t, lx, ly, sx, sy)
         nt = H.shape[0]
         stir = np.moveaxis(H, 0, -1)
         stir = stir.reshape(stir.shape[0] * stir.shape[1], stir.shape[2] * stir.shape[3], nt)
+        # both scan pairs are flattened second-file-axis first (see the moveaxis above)
+        lg = _scan_grid(path, "laserGridPositions", lgrid, lscan, transposed=True)
+        cg = _scan_grid(path, "cameraGridPositions", cgrid, cscan, transposed=True)
         return _capture(path, "znlos", grid=_grid(path, t0, dt, nt), stir=stir, legs_included=True,
+                        illuminated_xyz=lg, observed_xyz=cg,
                         source_xyz=None if las is None else _xyz(path, "laserPosition", las, 1)[0],
                         camera_xyz=None if cam is None else _xyz(path, "cameraPosition", cam, 1)[0])
     raise _fail(path, f"'data' must be 5-D (confocal) or 7-D (exhaustive); got {D.ndim}-D {D.shape}.")
