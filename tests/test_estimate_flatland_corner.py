@@ -26,7 +26,7 @@ import pytest
 from problems import hidden_corner
 from stircasadi.brdf import Lambertian
 from stircasadi.estimate import estimate_reflectance, report_table
-from stircasadi.estimate.pipeline import _kabsch, match_hidden_to_truth
+from stircasadi.estimate.pipeline import _frame_alignment, match_hidden_to_truth
 from stircasadi.geometry import GeometryEstimate
 from stircasadi.scene import Patch, Scene
 from stircasadi.sensor import GaussianNoise, Sensor
@@ -80,12 +80,12 @@ def _errors(e, sc):
     vis = e.visible
     P = np.vstack([pos[vis], np.zeros((1, 3))])
     Q = np.vstack([sc.positions[e.ids[vis]], np.zeros((1, 3))])
-    R = _kabsch(P, Q)
-    t = match_hidden_to_truth(pos @ R.T, vis, e.ids, sc.positions, ~sc.hidden)
+    A = _frame_alignment(P, Q, e.extra.get("frame"))  # estimate frame -> truth frame: pos @ A
+    t = match_hidden_to_truth(pos @ A, vis, e.ids, sc.positions, ~sc.hidden)
     ok = t >= 0
     alb = np.where(ok, e.values["albedo"] - sc.albedos[np.maximum(t, 0)], np.nan)
-    dpos = np.where(ok[:, None], pos - sc.positions[np.maximum(t, 0)] @ R, np.nan)
-    ang = np.degrees(np.arccos(np.clip(np.sum((e.values["normal"] @ R.T) * sc.normals[np.maximum(t, 0)], 1), -1, 1)))
+    dpos = np.where(ok[:, None], pos - sc.positions[np.maximum(t, 0)] @ A.T, np.nan)
+    ang = np.degrees(np.arccos(np.clip(np.sum((e.values["normal"] @ A) * sc.normals[np.maximum(t, 0)], 1), -1, 1)))
     return t, alb, dpos, ang
 
 

@@ -345,13 +345,19 @@ def _hidden_eps(g, pid, settings, bin_width) -> float:
 
 
 # ---------------------------------------------------------------------- report
-def _kabsch(P, Q):
-    """Rotation R minimising ||R P - Q|| (rows are points, about the origin = the source)."""
-    H = P.T @ Q
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    D = np.diag([1.0, 1.0, d])
-    return Vt.T @ D @ U.T
+def _frame_alignment(P, Q, frame) -> np.ndarray:
+    """Orthogonal A (rows are points: P @ A ~ Q) that takes the estimate's frame to the truth's.
+
+    In the capture's frame (known visible points) the frames are the same: identity. In the
+    source-origin frame positions are fixed only up to a rotation *or reflection* about the
+    source (distances cannot tell a scene from its mirror image), so the alignment is the
+    orthogonal Procrustes solution, the same one the geometry report uses; a proper-rotation-only
+    fit would leave a mirrored estimate misaligned and match hidden patches to the wrong truth."""
+    if frame == "capture" or len(P) < 3:
+        return np.eye(3)
+    from ..geometry.report import procrustes_matrix
+
+    return procrustes_matrix(P, Q)
 
 
 def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | None = None) -> str:
@@ -377,8 +383,8 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
         ok = vis_ids < len(tpos)
         P = np.vstack([pos[vis][ok], np.zeros((1, 3))])
         Q = np.vstack([tpos[vis_ids[ok]], np.zeros((1, 3))])
-        R = _kabsch(P, Q) if len(P) >= 3 else np.eye(3)
-        aligned = pos @ R.T
+        A = _frame_alignment(P, Q, e.extra.get("frame"))
+        aligned = pos @ A
         tvis = np.asarray(truth.get("visible", np.ones(len(tpos), bool)), bool)
         tmatch = match_hidden_to_truth(aligned, vis, e.ids, tpos, tvis)
     hdr = f"  {'patch':<8}{'parameter':<12}{'true':>12}{'estimate':>12}{'+-sigma':>11}{'error':>11}{'err/sig':>9}"
@@ -410,7 +416,7 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
         if e.free["position"][k]:
             sp = np.asarray(e.std["position"][k], float)
             if tk is not None:
-                pe = np.asarray(e.values["position"][k]) @ R.T - tpos[tk]
+                pe = np.asarray(e.values["position"][k]) @ A - tpos[tk]
                 err = float(np.linalg.norm(pe))
             else:
                 err = np.nan
@@ -427,7 +433,7 @@ def report_table(estimate: Estimate, truth: dict | None = None, timings: dict | 
                 sdeg = float(np.degrees(np.linalg.norm(sn)))   # small-angle std of the direction
                 err = np.nan
                 if tk is not None and tnor is not None:
-                    nv = np.asarray(e.values["normal"][k]) @ R.T
+                    nv = np.asarray(e.values["normal"][k]) @ A
                     err = float(np.degrees(np.arccos(np.clip(np.dot(nv, tnor[tk]), -1.0, 1.0))))
                 z = err / sdeg if (np.isfinite(err) and sdeg > 0) else np.nan
                 lines.append(f"  {nm:<8}{'normal':<12}{'':>12}{'':>12}{_f(sdeg):>11}{_f(err):>11}{_f(z, 2):>9}"
