@@ -378,7 +378,8 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
         chi2 = s2
         s_noise = np.sqrt(s2) * scale
     g_peak = float(tmpl.pulse(np.zeros(1))[0][0]) if model == "pulse" else 1.0
-    snr = amp * g_peak / np.maximum(s_noise, 1e-300)
+    with np.errstate(over="ignore", invalid="ignore"):  # diverged rows (not found) may overflow
+        snr = amp * g_peak / np.maximum(s_noise, 1e-300)
     tau = p[:, 1]
     # a window clipped at the grid's edge can leave too few bins: the fit is then exact
     # (zero residual, zero variance) and would report an onset of infinite SNR; refuse it
