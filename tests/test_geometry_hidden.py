@@ -63,6 +63,9 @@ def test_hidden_patches_recovered(n_hidden):
     assert len(e) == n_hidden
     if n_hidden <= 2:
         assert e.max() < 1e-3
+        # the placed patches explain every hidden-only return
+        assert est.stats["hidden"].extra["n_traces_unexplained"] == 0
+        assert est.stats["hidden"].extra["n_traces_hidden_only_returns"] > 0
     else:  # merged onsets bias two of the four by ~2 cm (measured 16 and 22 mm)
         assert np.sort(e)[1] < 1e-3 and e.max() < 0.04
     assert any(a["kind"] == "mirror" for a in est.ambiguities)  # coplanar wall: reported

@@ -2,8 +2,10 @@
 
 Full STIR with legs included -> onsets -> T2 distances (+eps) -> positions (the capture's
 visible points when it knows them, else MDS + bounded IPOPT refinement) -> normals and plane
-groups -> hidden patches from third onsets (robust labeling). Rectified relay-wall / confocal
-captures go to ``relay.estimate_relay``.
+groups -> hidden patches from third onsets (robust labeling) -> a check that the placed hidden
+patches explain every return that only a hidden surface can produce (else an
+``unexplained-hidden-returns`` ambiguity: an extended hidden surface whose returns blend).
+Rectified relay-wall / confocal captures go to ``relay.estimate_relay``.
 """
 from __future__ import annotations
 
@@ -99,6 +101,59 @@ def trusted_pairs(ids, ill, obs, snr, known, min_decades: float = 0.5, min_degre
     if trusted.sum(axis=1).min() < min_degree:
         return all_known, None
     return trusted, thr
+
+
+def shortest_visible_walks(D: np.ndarray) -> np.ndarray:
+    """(M, M) length of the shortest path i -> k -> ... -> j with at least two edges in the graph
+    whose edges are the measured second-bounce distances (patches that see each other): the
+    earliest return of three or more bounces through visible patches only (Floyd-Warshall)."""
+    M = len(D)
+    Dk = np.where(np.isfinite(D), D, np.inf)
+    np.fill_diagonal(Dk, np.inf)
+    SP = Dk.copy()
+    for k in range(M):
+        SP = np.minimum(SP, SP[:, k:k + 1] + SP[k:k + 1, :])
+    late = np.empty((M, M))
+    for a in range(M):
+        late[a] = np.min(Dk[a][:, None] + SP, axis=0)
+    return late
+
+
+def unexplained_hidden_returns(third: dict, ids, X, D, r, c, hid_pos, W: float, margin: float = 2.0) -> dict:
+    """Traces holding a family that only a hidden surface can produce, and how many of them the
+    placed hidden patches do not explain.
+
+    In trace (i, j) a family at excess path e = tau - r_i - c_j with
+    early_ij + margin W < e < late_ij - margin W, where early is the first (i = j) or the second
+    bounce (d_ij; |x_i - x_j| when the two do not see each other) and late the shortest visible
+    walk of two or more edges (``shortest_visible_walks``), can only come via a hidden point
+    (every visible path of three or more bounces takes at least ``late``). It is explained when
+    it lies within margin W of |x_i - h| + |h - x_j| for a placed hidden patch h."""
+    ids = np.asarray(ids)
+    pos = {int(v): k for k, v in enumerate(ids)}
+    late = shortest_visible_walks(D)
+    geo = np.linalg.norm(X[:, None] - X[None], axis=2)
+    H = np.asarray(hid_pos, float).reshape(-1, 3)
+    dh = np.linalg.norm(X[:, None] - H[None], axis=2) if len(H) else np.zeros((len(X), 0))
+    n_searched = n_hid = n_un = 0
+    for (i, j), pulses in third.items():
+        if int(i) not in pos or int(j) not in pos:
+            continue
+        a, b = pos[int(i)], pos[int(j)]
+        if not (np.isfinite(r[a]) and np.isfinite(c[b])):
+            continue
+        n_searched += 1
+        lo = 0.0 if a == b else (D[a, b] if np.isfinite(D[a, b]) else geo[a, b] - margin * W)
+        hi = late[a, b]
+        fam = [p["tau"] - r[a] - c[b] for p in pulses]
+        hid = [e for e in fam if lo + margin * W < e < hi - margin * W]
+        if not hid:
+            continue
+        n_hid += 1
+        pred = dh[a] + dh[b] if len(H) else np.zeros(0)
+        if any(not np.any(np.abs(pred - e) < margin * W) for e in hid):
+            n_un += 1
+    return {"n_traces_searched": n_searched, "n_traces": n_hid, "n_unexplained": n_un}
 
 
 def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySettings | None = None
@@ -285,6 +340,21 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
             stats["hidden"] = StageStats("hidden", "ok", 0, time.perf_counter() - t5, True,
                                          {"method": res["method"], "n_hidden": int(len(hid_pos)),
                                           "edm_rank_score": res.get("edm_rank_score")})
+    if third and M >= 3:
+        W = tmpl.width if tmpl is not None else w
+        un = unexplained_hidden_returns(third, ids, X, sol.D, sol.r, sol.c, hid_pos, W)
+        stats.setdefault("hidden", StageStats("hidden", "ok", 0, 0.0, True, {}))
+        stats["hidden"].extra["n_traces_hidden_only_returns"] = un["n_traces"]
+        stats["hidden"].extra["n_traces_unexplained"] = un["n_unexplained"]
+        if un["n_unexplained"] >= max(10, int(0.01 * un["n_traces_searched"])):
+            amb.append({"kind": "unexplained-hidden-returns", "patches": [],
+                        "n_traces": un["n_unexplained"],
+                        "message": f"{un['n_unexplained']} of {un['n_traces_searched']} traces hold a return that "
+                                   "only a hidden surface can produce (after their first/second bounce, "
+                                   "before any visible path of three or more bounces), and the "
+                                   f"{len(hid_pos)} hidden patches placed do not explain it. An extended "
+                                   "hidden surface blends the returns of its parts within one IRF width, "
+                                   "so they cannot be labeled patch by patch; its patches are not placed."})
     K = len(hid_pos)
     base = int(max(ids.max(), capture.ill_ids().max(), capture.obs_ids().max())) + 1
     all_ids = np.concatenate([ids, base + np.arange(K)])
