@@ -60,6 +60,14 @@ class GeometrySettings:
         return self
 
 
+def _forget_pairs(sol, pairs) -> None:
+    """Mark the distances of ``pairs`` (index pairs into sol.ids) unknown: NaN, infinite std/eps."""
+    for a, b in pairs:
+        sol.D[a, b] = sol.D[b, a] = np.nan
+        sol.D_std[a, b] = sol.D_std[b, a] = np.inf
+        sol.eps[a, b] = sol.eps[b, a] = np.inf
+
+
 def trusted_pairs(ids, ill, obs, snr, known, min_decades: float = 0.5, min_degree: int = 4):
     """Pairs whose second onsets are strong returns: (trusted (M, M) bool, threshold or None).
 
@@ -243,10 +251,7 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
             bad = np.isfinite(sol.D) & ~trusted & (zz > st.outlier_z)
             np.fill_diagonal(bad, False)
             screened = [(int(a), int(b)) for a, b in zip(*np.nonzero(np.triu(bad, 1)))]
-            for a, b in screened:
-                sol.D[a, b] = sol.D[b, a] = np.nan
-                sol.D_std[a, b] = sol.D_std[b, a] = np.inf
-                sol.eps[a, b] = sol.eps[b, a] = np.inf
+            _forget_pairs(sol, screened)
             stats["snr_split"] = StageStats("snr_split", "ok", 0, 0.0, True,
                                             {"threshold": split, "n_trusted": int(np.triu(trusted, 1).sum()),
                                              "n_screened": len(screened)})
@@ -283,10 +288,7 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
                 if out_pairs:
                     # a distance no point set fits (an earlier family in both O2_ij and O2_ji):
                     # reported unknown rather than kept with a bound it violates
-                    for a, b in out_pairs:
-                        sol.D[a, b] = sol.D[b, a] = np.nan
-                        sol.D_std[a, b] = sol.D_std[b, a] = np.inf
-                        sol.eps[a, b] = sol.eps[b, a] = np.inf
+                    _forget_pairs(sol, rinfo.get("outliers", []))
                     amb.append({"kind": "outlier-distances",
                                 "patches": sorted({int(ids[k]) for p_ in out_pairs for k in p_}),
                                 "pairs": [[int(ids[a]), int(ids[b])] for a, b in out_pairs],
