@@ -43,3 +43,32 @@ def test_three_patch_eps_coverage_monte_carlo():
     rate = inside / total
     assert rate >= 0.96, rate
     assert 0.75 < np.std(z) < 1.3
+
+
+def test_trusted_pairs_splits_two_snr_populations_only():
+    """SNR-seeded embedding: a strong population (second bounces) and a weak one a decade below
+    (intruding three-bounce families) split between them; one log-normal population does not
+    split; a split that would leave a patch with < 4 trusted distances is refused."""
+    from stircasadi.geometry.estimate import trusted_pairs
+
+    rng = np.random.default_rng(8)
+    M = 30
+    ids = np.arange(M)
+    weak = np.zeros((M, M), bool)
+    weak[:15, :15] = weak[15:, 15:] = True          # two "planes": coplanar pairs are weak
+    snr = np.where(weak, 10 ** rng.uniform(-0.3, 0.9, (M, M)), 10 ** rng.uniform(1.9, 3.5, (M, M)))
+    snr = np.minimum(snr, snr.T)
+    known = np.ones((M, M), bool)
+    tr, thr = trusted_pairs(ids, ids, ids, snr, known)
+    assert thr is not None and 10 ** 0.9 < thr < 10 ** 1.9
+    off = ~np.eye(M, dtype=bool)
+    np.testing.assert_array_equal(tr[off], ~weak[off])
+    # one population: no split, everything trusted
+    one = 10 ** rng.normal(2.5, 0.4, (M, M))
+    tr1, thr1 = trusted_pairs(ids, ids, ids, np.minimum(one, one.T), known)
+    assert thr1 is None and tr1[off].all()
+    # a patch whose strong distances are all but 3 gone: the split is refused
+    snr2 = snr.copy()
+    snr2[0, 18:] = snr2[18:, 0] = 1.0
+    tr2, thr2 = trusted_pairs(ids, ids, ids, snr2, known)
+    assert thr2 is None
