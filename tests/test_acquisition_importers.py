@@ -143,6 +143,18 @@ def test_detects_real_mat_files():
 floats = st.floats(allow_nan=True, allow_infinity=True, width=32)
 
 
+
+def _imported_data_or_refused(p):
+    """Import ``p``: None when it is refused with ImportFormatError, else its traces / STIR after
+    checking what every accepted file must give (finite data, positive bin width)."""
+    try:
+        cap = import_file(p)
+    except ImportFormatError:
+        return None
+    data = cap.stir if cap.stir is not None else cap.traces
+    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+    return data
+
 @FUZZ
 @given(vals=st.lists(st.lists(floats, min_size=1, max_size=4), min_size=1, max_size=6),
        header=st.sampled_from(["time_ps,a", "time_zz,a", "t,a", "time_ns,ill0_obs0,ill1_obs1",
@@ -176,12 +188,9 @@ def test_fuzz_ytal(tmp_path, shape, hformat, delta_t, t_start, nan, legs):
         f["t_start"] = t_start
         if legs is not None:
             f["t_accounts_first_and_last_bounces"] = legs
-    try:
-        cap = import_file(p)
-    except ImportFormatError:
+    data = _imported_data_or_refused(p)
+    if data is None:
         return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
     assert data.size == H.size
 
 
@@ -193,12 +202,7 @@ def test_fuzz_znlos(tmp_path, shape, dt, t0):
         f["data"] = np.ones(shape)
         f["deltaT"] = dt
         f["t0"] = t0
-    try:
-        cap = import_file(p)
-    except ImportFormatError:
-        return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+    _imported_data_or_refused(p)  # refused, or finite data on a positive bin width
 
 
 @FUZZ
@@ -211,12 +215,7 @@ def test_fuzz_npz(tmp_path, arr, ndim, key, unit, width):
     p = tmp_path / "f.npz"
     extra = {"pairs": np.zeros((a.shape[0] if a.ndim else 0, 2), int)} if key == "traces" else {}
     np.savez(p, **{key: a}, start=0.0, bin_width=width, time_unit=unit, **extra)
-    try:
-        cap = import_file(p)
-    except ImportFormatError:
-        return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and cap.grid.bin_width > 0
+    _imported_data_or_refused(p)  # refused, or finite data on a positive bin width
 
 
 @FUZZ

@@ -13,6 +13,17 @@ FUZZ = settings(max_examples=30, deadline=None, suppress_health_check=[HealthChe
 vals = st.sampled_from([0.0, 1.0, 7.0, -1.0, np.nan, np.inf])
 
 
+
+def _import_checked(p, fmt):
+    """Import ``p`` as ``fmt``: refused with ImportFormatError / CaptureError, or finite,
+    non-negative traces / STIR."""
+    try:
+        cap = import_file(p, fmt)
+    except (ImportFormatError, CaptureError):
+        return
+    data = cap.stir if cap.stir is not None else cap.traces
+    assert np.all(np.isfinite(data)) and np.all(data >= 0)
+
 @FUZZ
 @given(shape=st.lists(st.integers(0, 4), min_size=1, max_size=4), v=vals,
        width=st.one_of(vals, st.just(None)))
@@ -22,12 +33,7 @@ def test_fuzz_stanford(tmp_path, shape, v, width):
     if width is not None:
         d["width"] = width
     scipy.io.savemat(p, d)
-    try:
-        cap = import_file(p, "stanford-lct")
-    except (ImportFormatError, CaptureError):
-        return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and np.all(data >= 0)
+    _import_checked(p, "stanford-lct")  # refused, or finite non-negative data
 
 
 @FUZZ
@@ -37,12 +43,7 @@ def test_fuzz_ccsocr(tmp_path, n, nt, v, ci):
     scipy.io.savemat(p, {"sub_Sig": np.full((n, nt), v)})
     scipy.io.savemat(tmp_path / "C_i.mat", {"C_i": np.full((n, 3), ci)})
     scipy.io.savemat(tmp_path / "C_d.mat", {"C_d": np.full((n, 3), ci)})
-    try:
-        cap = import_file(p, "ccsocr")
-    except (ImportFormatError, CaptureError):
-        return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and np.all(data >= 0)
+    _import_checked(p, "ccsocr")  # refused, or finite non-negative data
 
 
 @FUZZ
@@ -50,9 +51,4 @@ def test_fuzz_ccsocr(tmp_path, n, nt, v, ci):
 def test_fuzz_general_nlos(tmp_path, rows, nt, v):
     p = tmp_path / "data_x.mat"
     scipy.io.savemat(p, {"counts": np.full((rows, nt), v)})
-    try:
-        cap = import_file(p, "general-nlos")
-    except (ImportFormatError, CaptureError):
-        return
-    data = cap.stir if cap.stir is not None else cap.traces
-    assert np.all(np.isfinite(data)) and np.all(data >= 0)
+    _import_checked(p, "general-nlos")  # refused, or finite non-negative data
