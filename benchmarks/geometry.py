@@ -90,7 +90,7 @@ def time_vs_M(Ms=(10, 50, 100, 200, 500)):
         X0, _ = em.embed(sol.r, sol.r_std, sol.D, sol.D_std)  # MDS + weighted LS, as estimate_geometry
         t2 = time.perf_counter()
         # as estimate_geometry does: bounds that hold jointly at the 99 % level
-        kb = dm.joint_bound_scale(sol.level, int(np.isfinite(np.triu(sol.eps, 1)).sum() + np.isfinite(sol.r_eps).sum()))
+        kb = sol.joint_bound_scale()
         X, info = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, kb * sol.eps, kb * sol.r_eps)
         t3 = time.perf_counter()
         U, _, Vt = np.linalg.svd(X.T @ Z)

@@ -70,6 +70,12 @@ class DistanceSolution:
     residual_chi2: float
     rejected: list = None
 
+    def joint_bound_scale(self) -> float:
+        """``joint_bound_scale`` for this solution's level and number of finite bounds (pair
+        distances and source legs)."""
+        n = int(np.isfinite(np.triu(self.eps, 1)).sum() + np.isfinite(self.r_eps).sum())
+        return joint_bound_scale(self.level, n)
+
 
 def forward_T2(r: np.ndarray, D: np.ndarray, c: np.ndarray | None = None) -> np.ndarray:
     """The onset matrix O (diagonal O1, off-diagonal O2) of legs r, c and distances D."""

@@ -78,6 +78,20 @@ def classical_mds(r: np.ndarray, D: np.ndarray, n_iter: int = 50, fill=None) -> 
     return X, info
 
 
+def _known_terms(r, r_std, D, D_std, eps=None, r_eps=None):
+    """Index arrays of the measured terms: pairs I < J whose distance (and std, and eps when
+    given) is finite, legs R whose r (and std, and r_eps) is finite; and the mask over all
+    upper-triangle pairs of the ones left out."""
+    iu, ju = np.triu_indices(len(r), 1)
+    known = np.isfinite(D[iu, ju]) & np.isfinite(D_std[iu, ju])
+    rk = np.isfinite(r) & np.isfinite(r_std)
+    if eps is not None:
+        known &= np.isfinite(eps[iu, ju])
+    if r_eps is not None:
+        rk &= np.isfinite(r_eps)
+    return iu[known], ju[known], np.flatnonzero(rk), ~known
+
+
 def embed(r: np.ndarray, r_std: np.ndarray, D: np.ndarray, D_std: np.ndarray,
           fills=(0.5, None, 0.0, 0.25), chi2_ok: float = 3.0) -> tuple[np.ndarray, dict]:
     """Positions from distances with missing entries: classical MDS completed from several first
@@ -93,14 +107,9 @@ def embed(r: np.ndarray, r_std: np.ndarray, D: np.ndarray, D_std: np.ndarray,
     Returns (X, info) with info: n_missing, rank_ratio (of the chosen MDS), fill, chi2, starts.
     """
     M = len(r)
-    iu, ju = np.triu_indices(M, 1)
-    known = np.isfinite(D[iu, ju]) & np.isfinite(D_std[iu, ju])
-    I, J = iu[known], ju[known]
+    I, J, R, miss = _known_terms(r, r_std, D, D_std)
     d, ds = D[I, J], np.maximum(D_std[I, J], 1e-9)
-    rk = np.isfinite(r) & np.isfinite(r_std)
-    R = np.flatnonzero(rk)
     rs = np.maximum(r_std[R], 1e-9)
-    miss = ~known
     best = None
     starts = []
     for fill in (fills if miss.any() else fills[:1]):
@@ -191,12 +200,8 @@ def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarr
 
     t_start = time.perf_counter()
     M = X0.shape[0]
-    iu, ju = np.triu_indices(M, 1)
-    known = np.isfinite(D[iu, ju]) & np.isfinite(eps[iu, ju]) & np.isfinite(D_std[iu, ju])
-    I, J = iu[known], ju[known]
+    I, J, R, _ = _known_terms(r, r_std, D, D_std, eps, r_eps)
     d, ds, de = D[I, J], np.maximum(D_std[I, J], 1e-9), eps[I, J]
-    rk = np.isfinite(r) & np.isfinite(r_std) & np.isfinite(r_eps)
-    R = np.flatnonzero(rk)
     rs = np.maximum(r_std[R], 1e-9)
     X1, ls = _ls_refine(X0, I, J, d, ds, R, r[R], rs)
     outliers: list[tuple[int, int]] = []
@@ -228,7 +233,7 @@ def refine_bounded(X0: np.ndarray, r: np.ndarray, r_std: np.ndarray, D: np.ndarr
     # decision variables: displacement from the LS optimum in units of the typical distance std
     # (values ~0.1-100, STYLE.md rule 7); constraints are normalised residuals in [-1, 1] * widen
     scale = float(np.median(ds))
-    rR, rsR, reR = r[R], r_std[R], r_eps[R]
+    rR, reR = r[R], r_eps[R]
     act, act_r = np.flatnonzero(act), np.flatnonzero(act_r)
     x0 = np.zeros(3 * M)
     lam0 = None  # multipliers of the previous round (warm start), None for a cold start

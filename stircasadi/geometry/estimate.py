@@ -275,8 +275,7 @@ def estimate_geometry(capture, hidden: int | None = None, settings: GeometrySett
                 # the bounds must hold together: with n bounded terms each at eps_level, about
                 # n (1 - level) of them exclude the truth (24 of 2 400 in Fig. 13), so the refinement
                 # uses the Bonferroni-widened bounds that all hold at eps_level jointly
-                n_b = int(np.isfinite(np.triu(sol.eps, 1)).sum() + np.isfinite(sol.r_eps).sum())
-                kb = dm.joint_bound_scale(st.eps_level, n_b) if st.joint_bounds else 1.0
+                kb = sol.joint_bound_scale() if st.joint_bounds else 1.0
                 X, rinfo = em.refine_bounded(X0, sol.r, sol.r_std, sol.D, sol.D_std, kb * sol.eps, kb * sol.r_eps,
                                              outlier_z=st.outlier_z)
                 stats["refine"] = StageStats("refine", str(rinfo.get("status")), int(rinfo.get("iterations", 0)),
