@@ -38,7 +38,7 @@ def build_scene(M: int):
     import numpy as np
 
     sys.path.insert(0, str(HERE.parent))
-    from problems._common import plane_patches, unit
+    from stircasadi.problems._common import plane_patches, unit
     from stircasadi.scene import Scene
 
     per = [M - 2 * (M // 3), M // 3, M // 3]
@@ -58,7 +58,8 @@ def build_scene(M: int):
 def run_case(M: int, method: str, n_pulses: int | None) -> dict:
     import numpy as np
 
-    from stircasadi.sensor import GaussianIRF, Sensor
+    from stircasadi.irf import GaussianIRF
+    from stircasadi.sensor import Sensor
     from stircasadi.timegrid import TimeGrid
     from stircasadi.transport import TransportSystem, simulate
     from stircasadi.transport.statespace import build_state_space, simulate_state_space

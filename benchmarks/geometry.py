@@ -182,7 +182,8 @@ def occluded(seeds=range(7), n_corrupt=8):
                      "n_outliers": est.stats["refine"].extra.get("n_outliers", 0)})
     # lower noise (1e-7): the same-plane traces' third-bounce families are now detected and
     # stand in for ~30 % of the second onsets (SNR-seeded embedding, GeometrySettings)
-    from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+    from stircasadi.irf import GaussianIRF
+    from stircasadi.sensor import GaussianNoise, Sensor
 
     se7 = Sensor(irf=GaussianIRF.from_ps(210.0), noise=GaussianNoise(relative=1e-7))
     for seed in seeds:

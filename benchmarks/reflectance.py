@@ -85,7 +85,7 @@ def numeric_lm_fd(nlp, scene, grid, sensor, bounces):
 
 def _walls_data(n_patches, n_bins, seed, path):
     """Simulate in the parent (the child's memory peak must be the estimator's alone)."""
-    from problems import lambertian_walls as lw
+    from stircasadi.problems import lambertian_walls as lw
     from stircasadi.transport import simulate
 
     sc, gr, se = lw.build_scene(n_patches), lw.build_grid(n_bins), lw.build_sensor(1e-2)
@@ -95,7 +95,7 @@ def _walls_data(n_patches, n_bins, seed, path):
 
 def _walls_case(n_patches, n_bins, solvers, seed=1, q=None, data=None):
     import casadi  # noqa: F401  (imports before the baseline)
-    from problems import lambertian_walls as lw
+    from stircasadi.problems import lambertian_walls as lw
     from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt, solve_lm
     from stircasadi.model import TransientModel
 
@@ -152,7 +152,7 @@ def _walls_case(n_patches, n_bins, solvers, seed=1, q=None, data=None):
 
 def _corner_case(n_bins=1024, bounces=3, tol=1e-8, noise=1e-7, seed=4, q=None, solver="ipopt"):
     import casadi  # noqa: F401
-    from problems import hidden_corner as hc
+    from stircasadi.problems import hidden_corner as hc
     from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt
     from stircasadi.model import TransientModel
     from stircasadi.sensor import GaussianNoise, Sensor
@@ -202,7 +202,7 @@ def _corner_case(n_bins=1024, bounces=3, tol=1e-8, noise=1e-7, seed=4, q=None, s
 
 def _probe_case(hessian="exact", noise=0.0, n_bins=160):
     """The issue's probe: 9 patches, one hidden, hidden position + albedos jointly."""
-    from problems import nine_patch_hidden as nine
+    from stircasadi.problems import nine_patch_hidden as nine
     from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt
     from stircasadi.model import TransientModel
     from stircasadi.transport import simulate

@@ -185,10 +185,12 @@ def _aligned_positions(geo, scene):
 
 
 def cmd_problems(args) -> int:
-    from .problem import DEFAULT_PROBLEM, list_problems
+    from .problem import DEFAULT_PROBLEM, describe, list_problems, load_problem
 
-    for p in list_problems():
-        print(p + ("  (default)" if p == DEFAULT_PROBLEM else ""))
+    names = list_problems()
+    width = max(len(p) for p in names)
+    for p in names:
+        print(f"{p:<{width}}  {describe(load_problem(p))}" + ("  [default]" if p == DEFAULT_PROBLEM else ""))
     return 0
 
 

@@ -58,6 +58,10 @@ class ImportFormatError(CaptureError):
     """A file could not be imported in the named (or detected) format."""
 
 
+class OutputError(StircasadiError, OSError):
+    """An output path cannot be written (a folder, missing or read-only folder, equal to an input)."""
+
+
 class IdentifiabilityWarning(UserWarning):
     """A parameter is not identifiable from the data (its Fisher information is ~0)."""
 

@@ -62,10 +62,11 @@ import numpy as np
 
 from .brdf import Lambertian, Mirror, Phong
 from .errors import ModelError
+from .irf import bin_integral
 from .radiometry import form_factor, source_irradiance
 from .timegrid import TimeGrid
 
-__all__ = ["TransientModel", "irf_from_samples", "PARAMETERS"]
+__all__ = ["TransientModel", "PARAMETERS"]
 
 #: Unknowns a model can declare, with their default bounds, scale and per-patch shape.
 PARAMETERS = {
@@ -80,39 +81,6 @@ PARAMETERS = {
     "tilt2": {"lower": -math.radians(80.0), "upper": math.radians(80.0), "scale": 1.0, "width": 1},
 }
 
-_SQRT2 = math.sqrt(2.0)
-_FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-
-
-def irf_from_samples(samples, bin_width: float, tol: float = 0.05):
-    """An impulse-response object from a Capture's ``irf`` samples (peak at the centre).
-
-    A Gaussian is fitted by moments; it is used when it reproduces the samples within ``tol`` of
-    their peak (then delays stay differentiable). Otherwise an ``ArrayIRF`` is returned (fixed
-    geometry only).
-    """
-    from .sensor import ArrayIRF, GaussianIRF
-
-    s = np.asarray(samples, float)
-    if s.ndim != 1 or s.size == 0 or s.sum() <= 0:
-        raise ModelError(f"irf samples must be a non-empty 1-D array with a positive sum; got shape {s.shape}.")
-    s = s / s.sum()
-    x = (np.arange(len(s)) - (len(s) - 1) / 2.0) * bin_width
-    mu = float(np.sum(x * s))
-    from scipy.optimize import minimize_scalar
-
-    def binned(sig):
-        g = GaussianIRF(sig / _FWHM_TO_SIGMA)
-        return g.cdf(x + 0.5 * bin_width) - g.cdf(x - 0.5 * bin_width)
-
-    # least-squares sigma of the bin-integrated Gaussian (moments fail when sigma < a bin)
-    res = minimize_scalar(lambda ls: float(np.sum((binned(math.exp(ls)) - s) ** 2)),
-                          bounds=(math.log(bin_width * 1e-3), math.log(bin_width * len(s))),
-                          method="bounded", options={"xatol": 1e-10})
-    sigma = math.exp(res.x)
-    if abs(mu) < 0.25 * bin_width and np.max(np.abs(binned(sigma) - s)) <= tol * s.max():
-        return GaussianIRF(sigma / _FWHM_TO_SIGMA)
-    return ArrayIRF(tuple(s.tolist()), bin_width)
 
 
 @dataclass
@@ -783,7 +751,7 @@ class TransientModel:
                 kk = k0[fixed, None] + offs[None, :]
                 valid = (kk >= 0) & (kk < nb) & (kk < k1[fixed, None])
                 left = t0 + kk * w - tau[:, None]
-                h = self.irf.cdf(left + w) - self.irf.cdf(left)
+                h = bin_integral(self.irf, left, w)
                 pi, mi = np.nonzero(valid)
                 tr = g.trace[fixed][pi]
                 rows = pos_of_bin(tr, kk[pi, mi])
@@ -797,15 +765,13 @@ class TransientModel:
             if len(var):
                 vv = g.verts[var]
                 amp, tau = self._path_amp_tau(vv, th)
-                sigma = self.irf.sigma
                 kmax = int(np.max(k1[var] - k0[var]))
                 offs = np.arange(kmax)
                 kk = k0[var, None] + offs[None, :]
                 valid = (kk >= 0) & (kk < nb) & (kk < k1[var, None])
                 left = ca.DM(t0 + kk * w)                                   # (P, W)
                 T = ca.repmat(tau.T, 1, kmax)
-                c = 1.0 / (_SQRT2 * sigma)
-                H = 0.5 * (ca.erf((left + w - T) * c) - ca.erf((left - T) * c))
+                H = bin_integral(self.irf, left - T, w)
                 C = H * ca.repmat(amp.T, 1, kmax)
                 pi, mi = np.nonzero(valid)
                 rows = pos_of_bin(g.trace[var][pi], kk[pi, mi])

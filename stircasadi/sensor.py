@@ -13,11 +13,8 @@ holds time-integrated radiance (its sum over bins is the steady-state radiance).
 
 Impulse responses
 -----------------
-* ``IdealIRF()``: no blur.
-* ``GaussianIRF(fwhm)``: H(x) = Phi(x / sigma), sigma = fwhm / (2 sqrt(2 ln 2)). The default
-  FWHM is 210 ps of time (6.3 cm of path), the paper's photodiode + 5 GHz sampling scope.
-* ``ArrayIRF(samples, bin_width)``: a measured response sampled on bins of ``bin_width`` with
-  its peak at the centre sample, taken as piecewise constant (H piecewise linear).
+``IdealIRF``, ``GaussianIRF`` (default FWHM 210 ps) and ``ArrayIRF`` live in ``stircasadi.irf``
+(the bin integral above is written there once); this module imports them.
 
 Noise (applied by ``Sensor.capture``, seeded)
 ---------------------------------------------
@@ -34,125 +31,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import ndtr
-
 from .capture import Capture
-from .constants import ps_to_m
 from .errors import SensorError
+from .irf import ArrayIRF, GaussianIRF, IdealIRF, sampled
 from .timegrid import TimeGrid
 
-_FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-
-
-def _discrete_kernel(irf, bin_width: float) -> tuple[np.ndarray, int]:
-    """Kernel ``h[m] = H((m+1) w) - H(m w)`` over the response's support, and the index of m = 0:
-    how a path at a bin's left edge spreads over bins (integer-delay mode)."""
-    lo, hi = irf.support()
-    m = np.arange(math.floor(lo / bin_width) - 1, math.ceil(hi / bin_width) + 1)
-    return irf.cdf((m + 1) * bin_width) - irf.cdf(m * bin_width), int(-m[0])
-
-
-class IdealIRF:
-    """No impulse response: each path lands in the bin that contains it."""
-
-    kind = "ideal"
-    band_limited = False
-
-    def cdf(self, x: np.ndarray) -> np.ndarray:
-        return (np.asarray(x) > 0).astype(float)
-
-    def support(self) -> tuple[float, float]:
-        return (0.0, 0.0)
-
-    def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
-        """Kernel ``h[m]`` (m = -offset..) for a path at a bin's left edge (integer mode)."""
-        return np.array([1.0]), 0
-
-    def describe(self) -> str:
-        return "none"
-
-
-@dataclass(frozen=True)
-class GaussianIRF:
-    """Gaussian impulse response of full width at half maximum ``fwhm`` (metres of path)."""
-
-    fwhm: float = ps_to_m(210.0)
-    kind = "gaussian"
-    band_limited = True
-
-    def __post_init__(self):
-        if not (self.fwhm > 0) or not math.isfinite(self.fwhm):
-            raise SensorError(f"GaussianIRF fwhm must be > 0 metres of path; got {self.fwhm!r}. "
-                              "For picoseconds use GaussianIRF.from_ps(fwhm_ps).")
-
-    @classmethod
-    def from_ps(cls, fwhm_ps: float) -> "GaussianIRF":
-        return cls(ps_to_m(fwhm_ps))
-
-    @property
-    def sigma(self) -> float:
-        return self.fwhm * _FWHM_TO_SIGMA
-
-    def cdf(self, x):
-        return ndtr(np.asarray(x) / self.sigma)
-
-    def support(self) -> tuple[float, float]:
-        return (-8.3 * self.sigma, 8.3 * self.sigma)  # tail mass < 1e-16
-
-    def fourier(self, omega: np.ndarray) -> np.ndarray:
-        """Fourier transform of the (centred) density, exp(-sigma^2 omega^2 / 2)."""
-        return np.exp(-0.5 * (self.sigma * omega) ** 2)
-
-    def band_limit(self, tol: float = 1e-15) -> float:
-        """Angular frequency (rad per metre) above which the spectrum is below ``tol``."""
-        return math.sqrt(-2.0 * math.log(tol)) / self.sigma
-
-    def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
-        return _discrete_kernel(self, bin_width)
-
-    def describe(self) -> str:
-        return f"gaussian fwhm={self.fwhm:.4g} m"
-
-
-@dataclass(frozen=True)
-class ArrayIRF:
-    """A measured impulse response sampled on bins of ``bin_width``, peak at the centre sample."""
-
-    samples: tuple
-    bin_width: float
-    kind = "array"
-    band_limited = False
-
-    def __post_init__(self):
-        s = np.asarray(self.samples, dtype=float)
-        if s.ndim != 1 or s.size == 0 or not np.all(np.isfinite(s)) or s.sum() <= 0 or np.any(s < 0):
-            raise SensorError("ArrayIRF samples must be a non-empty 1-D array of finite, non-negative "
-                              f"values with a positive sum; got shape {s.shape}.")
-        if not (self.bin_width > 0):
-            raise SensorError(f"ArrayIRF bin_width must be > 0 metres; got {self.bin_width!r}.")
-        object.__setattr__(self, "samples", tuple((s / s.sum()).tolist()))
-
-    @property
-    def _knots(self):
-        s = np.asarray(self.samples)
-        c = (len(s) - 1) / 2.0
-        x = (np.arange(len(s) + 1) - c - 0.5) * self.bin_width
-        return x, np.concatenate([[0.0], np.cumsum(s)])
-
-    def cdf(self, x):
-        xk, yk = self._knots
-        return np.interp(np.asarray(x, float), xk, yk, left=0.0, right=1.0)
-
-    def support(self) -> tuple[float, float]:
-        xk, _ = self._knots
-        return (float(xk[0]), float(xk[-1]))
-
-    def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
-        return _discrete_kernel(self, bin_width)
-
-    def describe(self) -> str:
-        return f"measured ({len(self.samples)} samples)"
-
+__all__ = ["Sensor", "GaussianNoise", "PoissonNoise"]
 
 @dataclass(frozen=True)
 class GaussianNoise:
@@ -227,13 +111,7 @@ class Sensor:
 
     def irf_samples(self, grid: TimeGrid) -> np.ndarray | None:
         """The impulse response on the grid's bin width, peak at the centre (for the Capture file)."""
-        if isinstance(self.irf, IdealIRF):
-            return None
-        lo, hi = self.irf.support()
-        half = int(math.ceil(max(-lo, hi) / grid.bin_width))
-        k = np.arange(-half, half + 1)
-        x = k * grid.bin_width
-        return self.irf.cdf(x + 0.5 * grid.bin_width) - self.irf.cdf(x - 0.5 * grid.bin_width)
+        return sampled(self.irf, grid.bin_width)
 
     def capture(self, transient, seed: int | None = 0, noise: bool = True) -> Capture:
         """Apply background and noise (seeded) to an ideal ``Transient``; return a ``Capture``."""

@@ -50,7 +50,7 @@ def test_capture_equals_forward_model_within_noise(captured, forward):
 def test_first_bounce_paths_recover_distances(captured, forward):
     """Independent of the estimator: first-bounce peaks of stir[i, i] give |s-z_i| + |z_i-o|."""
     *_, tr = forward
-    from problems import three_patch
+    from stircasadi.problems import three_patch
     scene = three_patch.build_scene()
     pos = np.asarray(scene.positions)
     s, o = np.asarray(scene.source), np.asarray(scene.camera)
@@ -76,7 +76,7 @@ def test_stircasadi_estimate_recovers_distances(captured, tmp_path):
     assert rc.returncode == 0, rc.stderr[-2000:]
     import json
     est = json.loads(out.read_text())
-    from problems import three_patch
+    from stircasadi.problems import three_patch
     truth = np.asarray(three_patch.build_scene().positions)
     d_true = np.linalg.norm(truth[:, None] - truth[None], axis=-1)
     pos = np.array([p["position"] for p in est["patches"] if p["visible"]])

@@ -14,7 +14,7 @@ def test_simulate_writes_a_valid_noise_free_capture(tmp_path):
     out = tmp_path / "three.h5"
     assert main(["simulate", "three_patch", "--out", str(out), "--noise", "none"]) == 0
     cap = Capture.read(out)
-    from problems import three_patch
+    from stircasadi.problems import three_patch
     from stircasadi.transport import simulate
     ref = simulate(three_patch.build_scene(), three_patch.build_grid(), three_patch.build_sensor())
     np.testing.assert_array_equal(cap.stir, ref.stir)

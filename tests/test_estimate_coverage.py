@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from problems import hidden_corner, lambertian_walls
+from stircasadi.problems import hidden_corner, lambertian_walls
 from stircasadi.estimate import ReflectanceNLP, solve_ipopt
 from stircasadi.model import TransientModel
 from stircasadi.sensor import GaussianNoise, Sensor

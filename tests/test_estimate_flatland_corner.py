@@ -23,7 +23,7 @@ import json
 import numpy as np
 import pytest
 
-from problems import hidden_corner
+from stircasadi.problems import hidden_corner
 from stircasadi.brdf import Lambertian
 from stircasadi.estimate import estimate_reflectance, report_table
 from stircasadi.estimate.pipeline import _frame_alignment, match_hidden_to_truth

@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from problems import hidden_corner, lambertian_walls, three_patch
-from problems._common import unit
+from stircasadi.problems import hidden_corner, lambertian_walls, three_patch
+from stircasadi.problems._common import unit
 from stircasadi.brdf import Lambertian
 from stircasadi.errors import ModelError, SolverError
 from stircasadi.estimate import EstimateSettings, ReflectanceNLP, solve_ipopt, solve_lm
 from stircasadi.model import TransientModel
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import GaussianNoise, Sensor
 
 from _reflectance_helpers import capture_of, hidden_model, quiet
 

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from problems import glossy_patch, hidden_corner, lambertian_walls
+from stircasadi.problems import glossy_patch, hidden_corner, lambertian_walls
 from stircasadi.capture import Capture
 from stircasadi.errors import IdentifiabilityWarning, ModelError
 from stircasadi.estimate import EstimateSettings, estimate_reflectance, report_table
@@ -108,7 +108,7 @@ def test_missing_areas_warn_and_bad_inputs_raise():
 def test_hidden_position_branch_with_many_visible_patches():
     """>= 3 visible patches: the hidden patch's position itself is unknown (box and distance
     constraints at the geometry stage's eps)."""
-    from problems import nine_patch_hidden as nine
+    from stircasadi.problems import nine_patch_hidden as nine
 
     sc, gr, se, tr, cap = capture_of(nine, seed=0, sensor=nine.build_sensor(1e-6))
     g = _geometry(sc)

@@ -4,10 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from problems import glossy_patch, hidden_corner, lambertian_walls, three_patch
+from stircasadi.problems import glossy_patch, hidden_corner, lambertian_walls, three_patch
 from stircasadi.estimate import ReflectanceNLP, solve_ipopt, solve_lm
 from stircasadi.model import TransientModel
-from stircasadi.sensor import GaussianIRF, PoissonNoise, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import PoissonNoise, Sensor
 
 from _legacy_scenes import three_patch_right_angle
 from _reflectance_helpers import capture_of, hidden_model, quiet
@@ -168,7 +169,7 @@ def test_folded_residuals_are_exact():
 def test_probe_scene_nine_patches_one_hidden_position():
     """The issue's probe (9 patches, 1 hidden, 160 bins, noise-free): its floor was 2e-4 bin with an
     exact frequency-domain delay, and L-BFGS ran out at 300 iterations."""
-    from problems import nine_patch_hidden as nine
+    from stircasadi.problems import nine_patch_hidden as nine
 
     sc, gr, se, tr, cap = capture_of(nine, seed=0)
     h = 8

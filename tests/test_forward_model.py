@@ -9,7 +9,8 @@ from scipy.special import ndtr
 
 from stircasadi.brdf import Lambertian, Mirror, Phong
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import ArrayIRF, GaussianIRF, Sensor
+from stircasadi.irf import ArrayIRF, GaussianIRF
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 from stircasadi.transport import (TransportSystem, build_state_space, radiosity, simulate)
 
@@ -183,7 +184,7 @@ def test_state_space_matrices_are_the_papers_shift_registers():
 
 # --------------------------------------------------------------------------- physics checks
 def test_reciprocity_lambertian_colocated_all_bounces():
-    from problems import three_planes
+    from stircasadi.problems import three_planes
     sc = three_planes.build_scene()
     tr = simulate(sc, three_planes.build_grid(), three_planes.build_sensor(), bounces="all")
     s = tr.stir
@@ -203,7 +204,7 @@ def test_time_integral_equals_radiosity():
 
 def test_energy_never_created():
     """Flux leaving the patches, bounce after bounce, never exceeds the pulse energy."""
-    from problems import three_planes
+    from stircasadi.problems import three_planes
     sc = three_planes.build_scene()
     sysm = TransportSystem.build(sc)
     S0, T0, O0 = sysm.steady_matrices()
@@ -251,7 +252,7 @@ def test_only_needed_effects_and_skipping_changes_nothing_beyond_tolerance():
 
 
 def test_hidden_scene_calls_for_three_bounces():
-    from problems import hidden_corner
+    from stircasadi.problems import hidden_corner
     tr = simulate(hidden_corner.build_scene(), hidden_corner.build_grid(), hidden_corner.build_sensor())
     assert tr.metadata["bounces"] == 3
     assert tr.stir.shape[:2] == (2, 2)
@@ -259,7 +260,7 @@ def test_hidden_scene_calls_for_three_bounces():
 
 
 def test_occluder_hides_patches_and_blocks_legs():
-    from problems import three_planes_occluded
+    from stircasadi.problems import three_planes_occluded
     sc = three_planes_occluded.build_scene()
     assert sc.hidden.sum() == 49 and np.all(sc.hidden[49:98])
     # the hidden panel still exchanges light with the visible back wall

@@ -4,7 +4,8 @@ import numpy as np
 from stircasadi.geometry import distances as dm
 from stircasadi.geometry import onsets as on
 from stircasadi.problem import load_problem
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import GaussianNoise, Sensor
 from stircasadi.transport import simulate
 
 

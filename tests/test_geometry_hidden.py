@@ -8,7 +8,8 @@ from stircasadi.geometry import estimate_geometry
 from stircasadi.geometry.estimate import GeometrySettings
 from stircasadi.problem import load_problem
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import GaussianNoise, Sensor
 from stircasadi.timegrid import TimeGrid
 from stircasadi.transport import simulate
 

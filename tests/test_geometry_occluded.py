@@ -84,7 +84,8 @@ def test_visible_structure_at_low_noise_where_intruders_are_detected(occluded, s
     populations: the strong ones seed the embedding and every weak distance that disagrees is
     dropped. Seed 3 also needs the multi-start completion of ``embedding.embed``: from the
     right-angle guess of the missing (coplanar) distances the seed fit stuck at 0.33 m."""
-    from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+    from stircasadi.irf import GaussianIRF
+    from stircasadi.sensor import GaussianNoise, Sensor
 
     sc, _, tr = occluded
     se = Sensor(irf=GaussianIRF.from_ps(210.0), noise=GaussianNoise(relative=1e-7))
@@ -130,7 +131,8 @@ def test_failed_family_fits_are_neither_reported_nor_subtracted(occluded):
     1e11-1e18 in 102 of the 9 604 traces. Every family reported now has a positive std and an
     fitted peak height below 1.1x the STIR's peak."""
     from stircasadi.geometry import onsets as on
-    from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+    from stircasadi.irf import GaussianIRF
+    from stircasadi.sensor import GaussianNoise, Sensor
 
     _, _, tr = occluded
     cap = Sensor(irf=GaussianIRF.from_ps(210.0), noise=GaussianNoise(relative=1e-8)).capture(tr, seed=0)
@@ -150,8 +152,9 @@ def test_hidden_panel_returns_are_reported_not_labeled(occluded, monkeypatch):
     point can produce them) but they blend within the IRF, so no patch is placed; the estimate
     says so (``unexplained-hidden-returns``) instead of staying silent. Control: the same scene
     with the hidden panel's albedo set to 1e-9 has no such trace (also at 1e-8, measured)."""
-    import problems.three_planes as tp
-    from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+    import stircasadi.problems.three_planes as tp
+    from stircasadi.irf import GaussianIRF
+    from stircasadi.sensor import GaussianNoise, Sensor
     from stircasadi.transport import simulate
 
     sc, _, tr = occluded

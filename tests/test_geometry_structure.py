@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from problems._common import paper_sensor
+from stircasadi.problems._common import paper_sensor
 from stircasadi.geometry import GeometryEstimate, estimate_geometry, report_table
 from stircasadi.geometry.report import position_rmse
 from stircasadi.problem import load_problem

@@ -4,7 +4,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from problems import glossy_patch, hidden_corner
+from stircasadi.problems import glossy_patch, hidden_corner
 from stircasadi.model import TransientModel
 
 from _reflectance_helpers import hidden_model

@@ -4,12 +4,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from problems import glossy_patch, hidden_corner, lambertian_walls, three_patch
+from stircasadi.problems import glossy_patch, hidden_corner, lambertian_walls, three_patch
 from stircasadi.brdf import Lambertian, Mirror
 from stircasadi.errors import ModelError
-from stircasadi.model import TransientModel, irf_from_samples
+from stircasadi.irf import from_samples
+from stircasadi.model import TransientModel
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, IdealIRF
+from stircasadi.irf import GaussianIRF, IdealIRF
 from stircasadi.transport import simulate
 
 from _reflectance_helpers import hidden_model
@@ -72,7 +73,7 @@ def test_irf_from_samples_recovers_gaussian():
     from stircasadi.sensor import Sensor
     from stircasadi.timegrid import TimeGrid
     s = Sensor(irf=g).irf_samples(TimeGrid(0.0, 0.005, 10))
-    fit = irf_from_samples(s, 0.005)
+    fit = from_samples(s, 0.005)
     assert isinstance(fit, GaussianIRF)
     assert abs(fit.fwhm - 0.04) / 0.04 < 0.01
 

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from problems import three_patch
+from stircasadi.problems import three_patch
 from stircasadi.estimate import ReflectanceNLP, solve_ipopt
 from stircasadi.model import TransientModel
 

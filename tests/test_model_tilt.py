@@ -10,7 +10,8 @@ from stircasadi.brdf import Lambertian
 from stircasadi.errors import ModelError
 from stircasadi.model import TransientModel
 from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import GaussianIRF, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 from stircasadi.transport import simulate
 

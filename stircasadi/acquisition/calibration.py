@@ -12,8 +12,9 @@ Equations
   lengths ``L_p`` those returns must have (source -> patch -> camera, from the geometry), the
   instrument's offset is ``delta = median_p(tau_p - L_p)`` and the grid start becomes
   ``start - delta``. (The impulse response is taken as centred, as DESIGN.md section 4 requires.)
-* **Impulse response.** The first-bounce windows of the traces (``2h+1`` bins around each peak),
-  aligned on their peak bins, averaged and normalised to unit sum; the peak sits at the centre.
+* **Impulse response.** ``stircasadi.irf.estimate_samples``: the first-bounce windows of the
+  traces (``2h+1`` bins around each peak), aligned on their peak bins, averaged and normalised
+  to unit sum; the peak sits at the centre.
 * **Background.** Per trace, the median of the bins of a window before the first return is
   subtracted (dark counts, ambient light, scope offset).
 * **Pile-up / dead time** (photon counters, Coates 1968): with ``N`` sync periods and ``n_k``
@@ -33,6 +34,7 @@ import numpy as np
 
 from ..capture import Capture
 from ..errors import CaptureError
+from ..irf import estimate_samples
 
 
 def _record(cap: Capture, step: str, **values) -> dict:
@@ -100,24 +102,11 @@ def time_zero(cap: Capture, expected_first_m, frac: float = 0.3, window: int = 1
 def estimate_irf(cap: Capture, half_width: int = 8, frac: float = 0.3) -> Capture:
     """Estimate the impulse response from the first-bounce returns; stored in ``cap.irf``."""
     traces, _ = cap.as_pairs()
-    peaks = first_peaks(traces, frac)
-    acc = np.zeros(2 * half_width + 1)
-    n = 0
-    for y, pk in zip(traces, peaks):
-        if not np.isfinite(pk):
-            continue
-        k = int(round(pk))
-        if k - half_width < 0 or k + half_width + 1 > y.size:
-            continue
-        w = y[k - half_width:k + half_width + 1]
-        if w.sum() > 0:
-            acc += w / w.sum()
-            n += 1
-    if n == 0:
+    irf = estimate_samples(traces, half_bins=half_width, frac=frac, trim=False)
+    n = int(np.isfinite(first_peaks(traces, frac)).sum())
+    if irf is None:
         raise CaptureError(f"estimate_irf: no first-bounce return with {half_width} bins on both "
                            "sides; reduce half_width or check the traces.")
-    irf = np.clip(acc / n, 0, None)
-    irf /= irf.sum()
     return dataclasses.replace(cap, irf=irf, extras=_record(cap, "irf", half_width=half_width,
                                                            n_traces=n))
 

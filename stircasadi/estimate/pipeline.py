@@ -32,7 +32,8 @@ import numpy as np
 
 from ..brdf import Lambertian, Phong
 from ..errors import IdentifiabilityWarning, ModelError
-from ..model import TransientModel, irf_from_samples
+from ..irf import from_samples
+from ..model import TransientModel
 from .nlp import ReflectanceNLP, solve_ipopt
 from .lm import solve_lm
 from .result import Estimate
@@ -100,7 +101,7 @@ def estimate_reflectance(capture, geometry_estimate=None, brdf: str = "lambertia
             raise ModelError("The capture has no impulse response ('irf') and none could be estimated "
                              "from first-bounce returns (no pulse is observed at its own patch). "
                              "Record the IRF in the capture (dataset 'irf').")
-    irf = irf_from_samples(irf_samples, capture.grid.bin_width)
+    irf = from_samples(irf_samples, capture.grid.bin_width)
     src = g.source_xyz if g.source_xyz is not None else (capture.source_xyz if capture.source_xyz is not None else np.zeros(3))
     cam = g.camera_xyz if g.camera_xyz is not None else (capture.camera_xyz if capture.camera_xyz is not None else src)
     hidden = np.flatnonzero(~vis)

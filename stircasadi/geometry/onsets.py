@@ -8,8 +8,8 @@ Model fitted (per trace, on a window around the family's leading edge)::
     edge:   y_k = a * G(c_k - tau) + b        (an extended surface: a step blurred by the IRF)
 
 c_k is bin k's centre, g the bin-integrated impulse response for a path at offset x from a bin
-centre (``GaussTemplate`` exact for a Gaussian IRF, ``SampledTemplate`` a cubic spline through
-the capture's ``irf`` samples), G its running integral (per bin) and b a constant background.
+centre (``stircasadi.irf.Template``: the same bin integral as the forward model, for a Gaussian
+or a measured response), G its running integral (per bin) and b a constant background.
 tau is the onset (the IRF is centred on the path length, sensor.py). Fitting is a batched
 Levenberg-Marquardt over all traces at once. Weights: Gaussian noise -> uniform, noise sigma
 from the fit residual; Poisson counts -> 1/max(model, 1) (iteratively reweighted).
@@ -28,165 +28,52 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
 from ..errors import GeometryError
+from ..irf import GaussianIRF, IdealIRF, Template, estimate_samples, from_samples
 
-__all__ = ["GaussTemplate", "SampledTemplate", "make_template", "fit_onsets", "detect_pulses",
+__all__ = ["GaussTemplate", "make_template", "estimate_irf", "fit_onsets", "detect_pulses",
            "detect_pulses_batch",
            "trace_onsets", "first_onsets", "second_onsets", "third_onsets", "noise_level",
            "OnsetFit", "onset_crb"]
 
-_SQ2PI = math.sqrt(2.0 * math.pi)
-_FWHM = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _CHUNK_SAMPLES = 1 << 22  # traces x bins handled at once by the STIR-level functions
 
 
-def _phi(z):
-    return np.exp(-0.5 * z * z) / _SQ2PI
-
-
 # ----------------------------------------------------------------------------- templates
-@dataclass(frozen=True)
-class GaussTemplate:
-    """Gaussian IRF of std ``sigma`` binned on bins of width ``w`` (both metres of path)."""
-
-    sigma: float
-    w: float
-
-    @property
-    def width(self) -> float:
-        return math.sqrt(self.sigma ** 2 + self.w ** 2 / 12.0)
-
-    def pulse(self, x):
-        s, h = self.sigma, self.w / 2
-        zp, zm = (x + h) / s, (x - h) / s
-        return ndtr(zp) - ndtr(zm), (_phi(zp) - _phi(zm)) / s
-
-    def edge(self, x):
-        s, h = self.sigma, self.w / 2
-        zp, zm = (x + h) / s, (x - h) / s
-
-        def psi(z):
-            return z * ndtr(z) + _phi(z)
-        return s / self.w * (psi(zp) - psi(zm)), (ndtr(zp) - ndtr(zm)) / self.w
-
-    def support(self) -> tuple[float, float]:
-        r = 5.0 * self.width
-        return -r, r
-
-
-class SampledTemplate:
-    """A measured IRF (samples on bins of width ``w``, peak at the centre sample) as a spline."""
-
-    def __init__(self, samples: np.ndarray, w: float):
-        from scipy.interpolate import CubicSpline
-
-        s = np.asarray(samples, float)
-        s = s / s.sum()
-        c = (len(s) - 1) / 2.0
-        x = (np.arange(len(s)) - c) * w
-        xp = np.concatenate([[x[0] - 2 * w, x[0] - w], x, [x[-1] + w, x[-1] + 2 * w]])
-        sp = np.concatenate([[0.0, 0.0], s, [0.0, 0.0]])
-        self._s = CubicSpline(xp, sp, bc_type="clamped")
-        self._ds = self._s.derivative()
-        self._int = self._s.antiderivative()
-        self._lo, self._hi = float(xp[0]), float(xp[-1])
-        self._total = float(self._int(self._hi))
-        self.w = w
-        m1 = float(np.sum(x * s))
-        self.sigma = math.sqrt(max(float(np.sum((x - m1) ** 2 * s)) - w * w / 12.0, (w / 4) ** 2))
-
-    @property
-    def width(self) -> float:
-        return math.sqrt(self.sigma ** 2 + self.w ** 2 / 12.0)
-
-    def pulse(self, x):
-        x = np.asarray(x, float)
-        inside = (x > self._lo) & (x < self._hi)
-        xc = np.clip(x, self._lo, self._hi)
-        return np.where(inside, self._s(xc), 0.0), np.where(inside, self._ds(xc), 0.0)
-
-    def edge(self, x):
-        x = np.asarray(x, float)
-        xc = np.clip(x, self._lo, self._hi)
-        val = self._int(xc) / self._total
-        inside = (x > self._lo) & (x < self._hi)
-        return val, np.where(inside, self._s(xc), 0.0) / self._total
-
-    def support(self) -> tuple[float, float]:
-        return self._lo, self._hi
-
-
-def _looks_gaussian(samples: np.ndarray, w: float) -> float | None:
-    """Return sigma if the samples are a binned Gaussian (within 2 %), else None."""
-    s = np.asarray(samples, float)
-    s = s / s.sum()
-    c = (len(s) - 1) / 2.0
-    x = (np.arange(len(s)) - c) * w
-    m1 = float(np.sum(x * s))
-    var = float(np.sum((x - m1) ** 2 * s)) - w * w / 12.0
-    if var <= (w / 8) ** 2 or abs(m1) > 0.05 * w:
-        return None
-    t = GaussTemplate(math.sqrt(var), w)
-    g, _ = t.pulse(x)
-    return math.sqrt(var) if np.max(np.abs(g - s)) < 0.02 * s.max() else None
+def GaussTemplate(sigma: float, w: float) -> Template:
+    """The onset template of a Gaussian response of std ``sigma`` on bins of width ``w``."""
+    return Template(GaussianIRF.from_sigma(sigma), w)
 
 
 def make_template(capture=None, irf: np.ndarray | None = None, bin_width: float | None = None,
-                  fwhm: float | None = None):
+                  fwhm: float | None = None) -> Template | None:
     """The onset template: from ``fwhm`` (Gaussian, metres of path), ``irf`` samples, the
-    capture's ``irf``, or estimated from the capture's first-bounce returns. Returns None for an
-    ideal (one-bin) response."""
+    capture's ``irf``, or estimated from the capture's first-bounce returns
+    (``stircasadi.irf.from_samples`` decides Gaussian or measured, as for the model). Returns
+    None for an ideal (one-bin) response."""
     w = bin_width if bin_width is not None else capture.grid.bin_width
     if fwhm is not None:
-        return GaussTemplate(fwhm / _FWHM, w)
+        return Template(GaussianIRF(fwhm), w)
     if irf is None and capture is not None:
         irf = capture.irf
     if irf is None and capture is not None:
         irf = estimate_irf(capture)
     if irf is None:
         return None
-    irf = np.asarray(irf, float)
-    if np.count_nonzero(irf > 1e-6 * irf.max()) <= 1:
-        return None
-    sig = _looks_gaussian(irf, w)
-    return GaussTemplate(sig, w) if sig is not None else SampledTemplate(irf, w)
+    resp = from_samples(irf, w)
+    return None if isinstance(resp, IdealIRF) else Template(resp, w)
 
 
 def estimate_irf(capture, half_bins: int = 40) -> np.ndarray | None:
-    """Estimate the IRF from the first-bounce returns (diagonal traces of a full STIR):
-    align each trace's first peak by its sub-bin centroid and average. None when unusable."""
+    """The impulse response from the first-bounce returns of a full STIR's diagonal traces
+    (``stircasadi.irf.estimate_samples``); None when unusable."""
     if capture.stir is None:
         return None
-    ill, obs = capture.ill_ids(), capture.obs_ids()
-    common = np.intersect1d(ill, obs)
+    common = np.intersect1d(capture.ill_ids(), capture.obs_ids())
     if common.size == 0:
         return None
-    rows = [capture.trace(i, i) for i in common]
-    acc, n = np.zeros(2 * half_bins + 1), 0
-    for y in rows:
-        y = y - np.median(y)
-        k = int(np.argmax(y))
-        if k < half_bins or k + half_bins >= len(y) or y[k] <= 0:
-            continue
-        seg = y[k - half_bins:k + half_bins + 1]
-        acc += seg / seg.sum() if seg.sum() > 0 else 0
-        n += 1
-    if n == 0:
-        return None
-    acc /= n
-    # keep the central lobe only (later families of other traces average out)
-    k0 = half_bins
-    lo = k0
-    while lo > 0 and acc[lo - 1] > 1e-3 * acc[k0]:
-        lo -= 1
-    hi = k0
-    while hi < len(acc) - 1 and acc[hi + 1] > 1e-3 * acc[k0] and acc[hi + 1] <= acc[hi] * 1.05:
-        hi += 1
-    r = max(k0 - lo, hi - k0)
-    out = np.clip(acc[k0 - r:k0 + r + 1], 0, None)
-    return out if out.sum() > 0 else None
+    return estimate_samples(np.stack([capture.trace(i, i) for i in common]), half_bins=half_bins)
 
 
 # ----------------------------------------------------------------------------- noise

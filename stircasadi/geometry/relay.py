@@ -27,11 +27,11 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import GeometryError
+from ..irf import FWHM_TO_SIGMA
 from .onsets import GaussTemplate, fit_onsets
 
 __all__ = ["relay_onsets", "fit_point", "fit_plane", "estimate_relay"]
 
-_FWHM = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
 def _wall_points(capture):
@@ -92,13 +92,13 @@ def relay_onsets(capture, gate_m: float | None = None, irf_fwhm: float | None = 
         best = None
         strong = order[: min(64, len(order))]
         for fw in np.linspace(2 * w, 40 * w, 20) if w < 0.005 else np.linspace(1.0 * w, 8 * w, 15):
-            f = fit_onsets(Y[strong], grid_sel, GaussTemplate(fw / _FWHM, w), tau0[strong],
+            f = fit_onsets(Y[strong], grid_sel, GaussTemplate(fw * FWHM_TO_SIGMA, w), tau0[strong],
                            model="edge", poisson=True)
             cost = np.nanmedian(f.chi2)
             if best is None or cost < best[0]:
                 best = (cost, fw)
         irf_fwhm = best[1]
-    tm = GaussTemplate(irf_fwhm / _FWHM, w)
+    tm = GaussTemplate(irf_fwhm * FWHM_TO_SIGMA, w)
     fit = fit_onsets(Y[use], grid_sel, tm, tau0[use], model="edge", poisson=True)
     tau = np.full(len(Y), np.nan)
     std = np.full(len(Y), np.nan)

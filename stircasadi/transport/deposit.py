@@ -1,7 +1,7 @@
 """Deposit path amplitudes into time bins through the sensor's impulse response (no rounding bias).
 
 Bin k of observed column j receives ``a * (H(t_{k+1} - tau) - H(t_k - tau))`` for a path of
-amplitude a at exact path length tau (see ``stircasadi.sensor``). In integer-delay mode tau is a
+amplitude a at exact path length tau (see ``stircasadi.irf``). In integer-delay mode tau is a
 whole number of bins and the discrete kernel ``h[m] = H((m+1) w) - H(m w)`` is used.
 """
 from __future__ import annotations
@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from ..irf import bin_integral
 from ..timegrid import TimeGrid
 
 
@@ -47,7 +48,7 @@ def deposit(out: np.ndarray, col: np.ndarray, amp: np.ndarray, tau: np.ndarray, 
         k0 = np.floor((ta + lo - t0) / w).astype(np.int64)
         k = k0[:, None] + offs[None, :]
         left = t0 + k * w - ta[:, None]
-        v = irf.cdf(left + w) - irf.cdf(left)
+        v = bin_integral(irf, left, w)
         v *= amp[sl, None]
         _scatter(flat, col[sl], k, v, nb)
 

@@ -1,4 +1,4 @@
-"""The issue's probe scene: eight visible wall patches (two walls of a room corner) and one hidden
+"""Eight visible wall patches (two walls of a room corner) and one hidden
 patch in front of them facing the walls, away from the camera; 160 bins, noise-free by default.
 Hidden position and every albedo are solved jointly from the third bounces."""
 from __future__ import annotations
@@ -8,10 +8,11 @@ from stircasadi.scene import Patch, Scene
 from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from . import lambertian_walls
-from ._common import gaussian_sensor, standard_main, unit
+from stircasadi.problems import lambertian_walls
+from stircasadi.problems._common import gaussian_sensor, unit
 
 NAME = "nine_patch_hidden"
+DESCRIPTION = "Eight wall patches of a room corner and one hidden patch facing them, noise-free."
 
 
 def build_scene() -> Scene:
@@ -29,14 +30,8 @@ def build_sensor(noise_rel: float = 0.0) -> Sensor:
     return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
-def truth() -> dict:
-    return build_scene().truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -7,9 +7,10 @@ from stircasadi.brdf import Lambertian
 from stircasadi.scene import Patch, Scene
 from stircasadi.timegrid import TimeGrid
 
-from ._common import paper_sensor, standard_main, unit
+from stircasadi.problems._common import paper_sensor, unit
 
 NAME = "three_patch"
+DESCRIPTION = "Fig. 10: three visible Lambertian patches, every pair facing."
 ALBEDOS = (0.7, 0.5, 0.9)
 AREA = 0.01  # 10 cm x 10 cm
 
@@ -30,15 +31,8 @@ def build_sensor():
     return paper_sensor(noise_rel=1e-5)
 
 
-def truth() -> dict:
-    s = build_scene()
-    return s.truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -7,9 +7,10 @@ import numpy as np
 from stircasadi.scene import Scene
 from stircasadi.timegrid import TimeGrid
 
-from ._common import paper_sensor, plane_patches, standard_main, unit
+from stircasadi.problems._common import paper_sensor, plane_patches, unit
 
 NAME = "three_planes"
+DESCRIPTION = "Fig. 11: 147 patches on three planes, all visible."
 N_SIDE = 7
 SPACING = 0.08
 AREA = 0.004
@@ -67,10 +68,8 @@ def truth(occluded: bool = False) -> dict:
     return t
 
 
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

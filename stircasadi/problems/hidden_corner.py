@@ -15,9 +15,10 @@ from stircasadi.scene import Patch, Scene
 from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import paper_sensor, standard_main, unit
+from stircasadi.problems._common import paper_sensor, unit
 
 NAME = "hidden_corner"
+DESCRIPTION = "Fig. 12: a flatland corner, 2 visible and 2 hidden patches, calibrated camera (the default)."
 N_HIDDEN = 2
 NOISE_REL = 1e-6
 
@@ -40,14 +41,8 @@ def build_sensor() -> Sensor:
     return paper_sensor(NOISE_REL, calibrated_camera=True)
 
 
-def truth() -> dict:
-    return build_scene().truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -8,9 +8,10 @@ from stircasadi.brdf import Lambertian, Mirror
 from stircasadi.scene import Patch, Scene
 from stircasadi.timegrid import TimeGrid
 
-from ._common import paper_sensor, plane_patches, standard_main, unit
+from stircasadi.problems._common import paper_sensor, plane_patches, unit
 
 NAME = "hidden_mirrors"
+DESCRIPTION = "Two hidden mirrors facing a 9 x 9 diffuse wall (image-source transfer)."
 
 
 def build_scene() -> Scene:
@@ -29,14 +30,8 @@ def build_sensor():
     return paper_sensor(noise_rel=1e-6)
 
 
-def truth() -> dict:
-    return build_scene().truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -5,7 +5,8 @@ import numpy as np
 
 from stircasadi.brdf import Lambertian
 from stircasadi.scene import Patch
-from stircasadi.sensor import GaussianIRF, GaussianNoise, Sensor
+from stircasadi.irf import GaussianIRF
+from stircasadi.sensor import GaussianNoise, Sensor
 
 
 def unit(v) -> np.ndarray:
@@ -39,15 +40,3 @@ def gaussian_sensor(noise_rel: float, fwhm_ps: float, calibrated_camera: bool = 
 def paper_sensor(noise_rel: float = 1e-4, calibrated_camera: bool = False) -> Sensor:
     """The paper's 210 ps FWHM response (photodiode + 5 GHz scope) and Gaussian noise."""
     return gaussian_sensor(noise_rel, 210.0, calibrated_camera)
-
-
-def standard_main(mod, seed: int = 0) -> None:
-    """Simulate the problem through its sensor and print a summary."""
-    from stircasadi.transport import simulate
-
-    scene, grid, sensor = mod.build_scene(), mod.build_grid(), mod.build_sensor()
-    tr = simulate(scene, grid, sensor=sensor)
-    cap = sensor.capture(tr, seed=seed)
-    print(scene.describe())
-    print(f"grid: {grid}; STIR {cap.stir.shape}; method={tr.metadata['method']}, "
-          f"bounces={tr.metadata['bounces']}, omitted energy {tr.metadata.get('omitted_energy_rel', 0):.2e}")

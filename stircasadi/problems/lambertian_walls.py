@@ -10,9 +10,10 @@ from stircasadi.scene import Scene
 from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import gaussian_sensor, plane_patches, standard_main, unit
+from stircasadi.problems._common import gaussian_sensor, plane_patches, unit
 
 NAME = "lambertian_walls"
+DESCRIPTION = "N Lambertian patches on the two walls of a room corner; a reflectance twin with known geometry."
 SPAN = 0.6      # metres covered by each wall's patches
 AREA = 0.004
 
@@ -53,14 +54,8 @@ def build_sensor(noise_rel: float = 1e-2) -> Sensor:
     return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
-def truth() -> dict:
-    return build_scene().truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from stircasadi.scene import Scene
 
-from . import three_planes as _base
-from ._common import standard_main
+from stircasadi.problems import three_planes as _base
 
 NAME = "three_planes_occluded"
+DESCRIPTION = "Fig. 13: the three planes with the left one hidden behind a screen."
 build_grid = _base.build_grid
 build_sensor = _base.build_sensor
 plane_labels = _base.plane_labels
@@ -21,10 +21,8 @@ def truth() -> dict:
     return _base.truth(occluded=True)
 
 
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -7,9 +7,10 @@ from stircasadi.scene import Patch, Scene
 from stircasadi.sensor import Sensor
 from stircasadi.timegrid import TimeGrid
 
-from ._common import gaussian_sensor, standard_main, unit
+from stircasadi.problems._common import gaussian_sensor, unit
 
 NAME = "glossy_patch"
+DESCRIPTION = "One glossy (modified Phong) patch among four Lambertian ones; a reflectance twin with known geometry."
 GLOSSY = Phong(albedo=0.3, specular=0.5, exponent=8.0)
 
 
@@ -30,14 +31,8 @@ def build_sensor(noise_rel: float = 1e-3) -> Sensor:
     return gaussian_sensor(noise_rel, fwhm_ps=60.0)
 
 
-def truth() -> dict:
-    return build_scene().truth_dict()
-
-
-def main() -> None:
-    import sys
-    standard_main(sys.modules[__name__])
-
-
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from stircasadi.problem import problem_main
+    problem_main(sys.modules[__name__])

@@ -1,1 +1,0 @@
-"""Problem-definition scripts: one importable factory per scene (see stircasadi.problem)."""
