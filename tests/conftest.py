@@ -10,7 +10,9 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+from stircasadi.datasets import data_dir
+
+SHARED_DATA = data_dir()
 
 
 @pytest.fixture(scope="session")
