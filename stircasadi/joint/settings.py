@@ -1,4 +1,4 @@
-"""Settings of the reflectance / joint-geometry estimators: typed dataclasses, validated.
+"""Settings of the joint estimator (geometry + reflectance + hidden patches): typed, validated.
 
 Every field has a docstring (the attribute docstring below it); ``validate()`` raises a
 ``ModelError`` that names the field, the allowed values, what was given and the fix.
@@ -11,7 +11,7 @@ from ..errors import ModelError
 
 _COSTS = ("oem", "pem")
 _LIKELIHOODS = ("gaussian", "poisson")
-_WEIGHTINGS = ("noise", "relative", "none")
+_WEIGHTINGS = ("noise", "relative", "counts", "none")
 _HESSIANS = ("exact", "gauss-newton", "limited-memory")
 _LM_METHODS = ("lm", "trf")
 _JACOBIANS = ("ad", "fd")
@@ -43,7 +43,9 @@ class CostSettings:
     """``"noise"``: residuals divided by the noise std (maximum likelihood; every bounce counts
     in proportion to its signal-to-noise ratio, and a noise-free capture falls back on
     ``sigma_floor_rel``). ``"relative"``: divided by sqrt(sigma^2 + (rel_weight * |y|)^2),
-    which makes weak bounces count like strong ones. ``"none"``: raw residuals."""
+    which makes weak bounces count like strong ones. ``"counts"``: photon counts, divided by
+    sqrt(max(s y, 1)) / s (s counts per STIR unit; Neyman's chi2, the Poisson variance from the
+    data). ``"none"``: raw residuals."""
     sigma: float | None = None
     """Noise std in STIR units; None: from the capture's noise attributes, else estimated from
     the bins where the model deposits no light."""
@@ -65,6 +67,10 @@ class CostSettings:
     do not see a patch's lobe (specular -> 0 leaves the exponent free); in chi^2 units it is
     negligible against any lobe the data do see. Identifiability flags ignore it (data-only
     Fisher information). 0 disables it."""
+    weak_prior: bool = True
+    """Add the weak prior 1/2 sum ((x - x0) / range)^2 (``uncertainty.PRIOR_RANGE``: albedo 1,
+    position 1 m, tilt pi/2...): numbers the data do not identify stay at their start instead of
+    wandering; its pull on identified numbers is below 1e-6 of their std."""
     tikhonov_reference: str = "zero"
     """``"zero"`` (lambda ||Theta||^2, scaled) or ``"initial"`` (shrink toward the initial guess)."""
 
@@ -96,12 +102,9 @@ class ConstraintSettings:
     """Transport stability: every flux-transfer column sum sum_r rho_r F_{k->r} <= 1 - margin."""
     stability_margin: float = 1e-6
     """Margin below 1 of the stability constraint."""
-    hidden_eps: float = 0.02
-    """Half-width (metres) of the box and of the distance constraints | |p_h - z_v| - D_hv | <= eps
-    that keep hidden positions near the geometry stage's estimate."""
-    distance_constraints: bool = True
-    """Also constrain hidden-to-visible distances (not only the box)."""
-
+    hidden_eps: float = 0.05
+    """Half-width (metres) of the box that keeps a hidden position near its detected start
+    (also the model's time window: larger boxes cost more)."""
     def validate(self) -> "ConstraintSettings":
         _positive("stability_margin", self.stability_margin, allow_zero=True)
         _positive("hidden_eps", self.hidden_eps)
@@ -184,17 +187,68 @@ class UncertaintySettings:
     null_tol: float = 1e-10
     """Eigenvalues of the correlation-normalised Fisher matrix D^-1/2 F D^-1/2 (diagonal 1) below
     null_tol span its null space (scale-free: strong and weak parameters are judged alike)."""
+    chi2_inflate: bool = True
+    """Scale every std by sqrt(chi2/dof) when the whitened residual exceeds its noise level
+    (model mismatch shown, not hidden)."""
+    chi2_max: float = 3.0
+    """chi2/dof above this: the model does not explain the data; the estimate is UNRELIABLE."""
 
     def validate(self) -> "UncertaintySettings":
         _positive("max_rel_std", self.max_rel_std)
         _positive("max_tilt_std_deg", self.max_tilt_std_deg)
         _positive("null_tol", self.null_tol)
+        if not self.chi2_max > 1:
+            raise ModelError(f"chi2_max must be > 1; got {self.chi2_max!r}.")
+        return self
+
+
+@dataclass
+class SearchSettings:
+    """Residual-driven search for hidden patches (``stircasadi.joint.search``)."""
+
+    enabled: bool = True
+    """Search the residual for returns of patches not yet in the model."""
+    max_hidden: int = 8
+    """Most hidden patches added (``--hidden N`` fixes the number instead)."""
+    p_value: float = 1e-6
+    """A candidate is kept when its likelihood-ratio statistic (the drop of the whitened chi2)
+    exceeds the chi2 quantile of 1 - p_value for the unknowns it adds."""
+    grid_step_irf: float = 0.75
+    """Search grid step in IRF widths (refined locally after the coarse maximum)."""
+    max_traces: int = 600
+    """Most traces the backprojection uses (the strongest residual ones when there are more)."""
+    extended: bool = True
+    """Model hidden patches as discs whose size the data may resolve (area unknown)."""
+
+    def validate(self) -> "SearchSettings":
+        _positive("p_value", self.p_value)
+        _positive("grid_step_irf", self.grid_step_irf)
+        if not isinstance(self.max_hidden, int) or self.max_hidden < 0:
+            raise ModelError(f"max_hidden must be an integer >= 0; got {self.max_hidden!r}.")
+        return self
+
+
+@dataclass
+class CheckSettings:
+    """Self-checks of a solve against the data (``stircasadi.joint.checks``)."""
+
+    trace_p: float = 1e-6
+    """A trace fails when its whitened chi2 exceeds the 1 - trace_p / n_traces quantile."""
+    unexplained_k: float = 6.0
+    """A residual return above this many noise std of the matched filter is unexplained."""
+    reciprocity_k: float = 6.0
+    """Traces (i, j) and (j, i) disagree when their whitened difference exceeds this (rms x sqrt n)."""
+
+    def validate(self) -> "CheckSettings":
+        _positive("trace_p", self.trace_p)
+        _positive("unexplained_k", self.unexplained_k)
+        _positive("reciprocity_k", self.reciprocity_k)
         return self
 
 
 @dataclass
 class EstimateSettings:
-    """All settings of ``estimate_reflectance``."""
+    """All settings of the joint estimator (``stircasadi.pipeline.estimate_capture``)."""
 
     solver: str = "ipopt"
     """``"ipopt"`` or ``"lm"``."""
@@ -202,20 +256,20 @@ class EstimateSettings:
     """Bounce order K of the model; None: 3 with hidden patches, else 2."""
     estimate_hidden_geometry: bool = True
     """Solve hidden positions jointly with the BRDF parameters (else fix them)."""
-    estimate_normals: str = "missing"
-    """Which patch normals to estimate (as rotations of the initial normal): ``"missing"`` (those
-    the geometry estimate gives as NaN), ``"hidden"`` (those and every hidden patch's),
-    ``"all"`` or ``"none"`` (missing ones are then assumed: visible face the camera, hidden the
-    visible centroid)."""
+    free_positions_max: int = 40
+    """Visible positions the capture does not give are refined by the joint fit when there are
+    at most this many patches; above, they stay at the geometry stage's estimate and their
+    covariance is propagated into the other unknowns (two-step, Murphy-Topel)."""
     cost: CostSettings = field(default_factory=CostSettings)
     constraints: ConstraintSettings = field(default_factory=ConstraintSettings)
     ipopt: IpoptSettings = field(default_factory=IpoptSettings)
     lm: LMSettings = field(default_factory=LMSettings)
     uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)
+    search: SearchSettings = field(default_factory=SearchSettings)
+    checks: CheckSettings = field(default_factory=CheckSettings)
 
     def validate(self) -> "EstimateSettings":
         _choice("solver", self.solver, ("ipopt", "lm"))
-        _choice("estimate_normals", self.estimate_normals, ("missing", "hidden", "all", "none"))
         if self.bounces is not None and (not isinstance(self.bounces, int) or self.bounces < 1):
             raise ModelError(f"bounces must be None or an integer >= 1; got {self.bounces!r}.")
         for f in fields(self):

@@ -1,12 +1,11 @@
-"""Levenberg-Marquardt (scipy ``least_squares``) on the same residuals, the paper's method.
+"""Levenberg-Marquardt (scipy ``least_squares``) on the joint NLP's residuals: the paper's solver.
 
-When to use: as the paper's solver and as the baseline of the benchmarks. ``jacobian="ad"``
-feeds the exact CasADi Jacobian; ``jacobian="fd"`` lets scipy difference the residuals (what a
-MATLAB ``lsqnonlin`` / scipy user gets by default). LM solves the unconstrained least-squares
-problem (``method="lm"``) or a bounded one (``"trf"``); the NLP's nonlinear constraints
-(energy, stability, hidden distances) are not enforced by LM: they are checked at the result and
-a violation fails the solve. Gaussian OEM only (PEM's log-determinant and the Poisson likelihood
-are not sums of squares: use IPOPT).
+When to use: as the paper's method and the baseline of the benchmarks. ``jacobian="ad"`` feeds
+the exact CasADi Jacobian; ``jacobian="fd"`` lets scipy difference the residuals. LM solves the
+unconstrained least-squares problem (``method="lm"``) or a bounded one (``"trf"``); the NLP's
+nonlinear constraints are not enforced: they are checked at the result and a violation fails
+the solve. Gaussian OEM only (PEM's log-determinant and the Poisson likelihood are not sums of
+squares: use IPOPT).
 """
 from __future__ import annotations
 
@@ -16,13 +15,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import ModelError, SolverError
-from .nlp import ReflectanceNLP
+from .solve import Solution
+
+__all__ = ["solve_lm"]
 
 
-def solve_lm(nlp: ReflectanceNLP, x0=None):
-    """Solve with scipy ``least_squares``; return an ``Estimate`` (or raise ``SolverError``)."""
-    from .result import Estimate
-
+def solve_lm(nlp, x0=None) -> Solution:
+    """Solve with scipy ``least_squares``; return a ``Solution`` (or raise ``SolverError``)."""
     st = nlp.settings.lm
     if nlp.poisson or nlp.pem:
         raise ModelError("Levenberg-Marquardt handles the Gaussian output-error cost only; got "
@@ -30,8 +29,6 @@ def solve_lm(nlp: ReflectanceNLP, x0=None):
                          "Use solver='ipopt' for PEM or Poisson.")
     lam = nlp.settings.cost.tikhonov
     sq = np.sqrt(2.0 * lam)
-    xref = nlp.x_ref
-
     gl = np.asarray(nlp.gloss_idx, int)
     sg = np.sqrt(2.0 * nlp.settings.cost.gloss_prior) if len(gl) else 0.0
     x0g = nlp.model.x0[gl] if len(gl) else np.zeros(0)
@@ -39,7 +36,7 @@ def solve_lm(nlp: ReflectanceNLP, x0=None):
     def fun(x):
         parts = [nlp.residuals(x)]
         if lam > 0:
-            parts.append(sq * (x - xref))
+            parts.append(sq * (x - nlp.x_ref))
         if sg > 0:
             parts.append(sg * (x[gl] - x0g))
         return np.concatenate(parts)
@@ -60,19 +57,18 @@ def solve_lm(nlp: ReflectanceNLP, x0=None):
         kw["bounds"] = (lb, ub)
         x_init = np.clip(x_init, lb + 1e-12 * (ub - lb), ub - 1e-12 * (ub - lb))
     t0 = time.perf_counter()
-    res = least_squares(fun, x_init, jac=jac if st.jacobian == "ad" else "2-point",
-                        method=st.method, **kw)
+    res = least_squares(fun, x_init, jac=jac if st.jacobian == "ad" else "2-point", method=st.method, **kw)
     t_solve = time.perf_counter() - t0
     viol = nlp.constraint_violation(res.x)
     ok = bool(res.success) and res.status > 0 and viol <= 1e-6
     status = res.message if viol <= 1e-6 else f"{res.message} but constraints violated by {viol:.3g}"
-    info = {"status": status, "iterations": int(res.nfev), "njev": int(res.njev or 0),
-            "success": ok, "method": st.method, "jacobian": st.jacobian, "build_time_s": 0.0,
-            "solve_time_s": t_solve, "cost": float(nlp.f_cost(res.x)), "constraint_violation": viol}
-    est = Estimate.from_solution(nlp, res.x, solver=f"lm-{st.jacobian}", info=info)
+    sol = Solution(np.asarray(res.x), ok, status, int(res.nfev), float(nlp.f_cost(res.x)), 0.0, t_solve,
+                   solver=f"lm-{st.jacobian}",
+                   info={"njev": int(res.njev or 0), "method": st.method, "jacobian": st.jacobian,
+                         "constraint_violation": viol})
     if not ok and st.raise_on_failure:
         raise SolverError(f"Levenberg-Marquardt ({st.method}, {st.jacobian} Jacobian) failed: {status} "
                           f"(scipy status {res.status}). Allowed: converged with every constraint "
                           "satisfied. Try solver='ipopt' (constraints enforced) or method='trf'.",
-                          status=status, stats=info)
-    return est
+                          status=status, stats=sol.info)
+    return sol
