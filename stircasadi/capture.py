@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -314,8 +315,7 @@ class Capture:
                 with h5py.File(tmp, "w") as f:
                     write_into(f, self)
         except (OSError, RuntimeError) as exc:  # h5py reports a failed flush as RuntimeError
-            raise OutputError(f"Could not write the capture {path}: {exc}. Nothing was changed at "
-                              "that path; free disk space or choose another location.") from exc
+            raise _write_error(path, exc) from exc
         return path
 
     @classmethod
@@ -339,6 +339,15 @@ class Capture:
                 raise
             except (KeyError, ValueError, TypeError, OSError) as exc:
                 raise CaptureError(f"{path}: corrupted Capture file ({type(exc).__name__}: {exc}).") from exc
+
+
+def _write_error(path, exc: BaseException) -> OutputError:
+    """One line saying why an HDF5 write failed (HDF5's own message spans many lines)."""
+    text = str(exc)
+    m = re.search(r"error message = '([^']*)'", text)
+    why = m.group(1) if m else " ".join(text.split())[:200]
+    return OutputError(f"Could not write the capture {path}: {why}. Nothing was changed at that "
+                       "path; free disk space or choose another location.")
 
 
 def _attrs_to_dict(attrs) -> dict:
@@ -462,6 +471,9 @@ class CaptureWriter:
             self._file = h5py.File(tmp, "w")
             _write_header(self._file, self.template)
             self._data = _create_data(self._file, "stir", self.shape)
+        except (OSError, RuntimeError) as exc:
+            self._abort(exc)
+            raise _write_error(self.path, exc) from exc
         except BaseException as exc:
             self._abort(exc)
             raise
@@ -470,7 +482,10 @@ class CaptureWriter:
     def write_row(self, r: int, row) -> None:
         """Write ``stir[r] = row`` (``(n_observed, n_bins)``, finite float64)."""
         row = _as_float_array(f"stir[{r}]", row, ndim=2, shape=self.shape[1:])
-        self._data[int(r)] = row
+        try:
+            self._data[int(r)] = row
+        except (OSError, RuntimeError) as exc:
+            raise _write_error(self.path, exc) from exc
         self._written[int(r)] = True
 
     def commit(self) -> Path:
@@ -479,10 +494,14 @@ class CaptureWriter:
         if missing.size:
             raise CaptureError(f"CaptureWriter.commit: rows {missing[:10].tolist()} of {self.shape[0]} "
                                "were never written; a Capture holds no invented zeros.")
-        self._file.close()
-        self._file = None
-        ctx, self._ctx = self._ctx, None
-        ctx.__exit__(None, None, None)
+        try:
+            self._file.close()
+            self._file = None
+            ctx, self._ctx = self._ctx, None
+            ctx.__exit__(None, None, None)
+        except (OSError, RuntimeError) as exc:
+            self._file = None
+            raise _write_error(self.path, exc) from exc
         return self.path
 
     def _abort(self, exc) -> None:

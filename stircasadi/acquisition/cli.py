@@ -203,7 +203,7 @@ def _run_acquire(args) -> int:
         if isinstance(exc, KeyboardInterrupt):
             what = f"interrupted by {getattr(exc, 'signame', 'SIGINT (Ctrl-C)')}"
         else:
-            what = f"error: {exc}"
+            what = "error: " + " ".join(str(exc).split())
         if safe is not None and journal is not None:
             print(f"acquire: {what} -- {safe} of {total} rows are safe in {journal}; resume with: "
                   f"{_resume_command(argv)}", file=sys.stderr)

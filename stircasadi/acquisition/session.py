@@ -34,7 +34,7 @@ import numpy as np
 
 from .. import __version__
 from ..capture import Capture, CaptureWriter
-from ..errors import AcquisitionSettingsError, CaptureError, InstrumentError
+from ..errors import AcquisitionSettingsError, CaptureError, InstrumentError, OutputError
 from ..io import check_output
 from ..progress import get_logger
 from ..timegrid import TimeGrid
@@ -194,9 +194,15 @@ def acquire(scan, detector, out: str | Path, shots: int, patches=None, resume: b
     with OutputLock(out):
         grid = detector.grid()
         n_obs = detector.n_observed
-        journal = _open_journal(out, resume, lambda: _header(grid, ids, n_obs, shots, detector, scan,
-                                                             legs_included, extra_provenance),
-                                ids, n_obs, shots, grid, detector)
+        try:
+            journal = _open_journal(out, resume, lambda: _header(grid, ids, n_obs, shots, detector,
+                                                                 scan, legs_included, extra_provenance),
+                                    ids, n_obs, shots, grid, detector)
+        except (OutputError, KeyboardInterrupt) as exc:  # disk full or a signal while opening it
+            if jp.exists():
+                st = read_journal(jp)
+                exc.rows_safe, exc.rows_total, exc.journal = len(st.rows), len(ids), jp
+            raise
         log.info("acquire: journal %s (%d of %d rows already saved)", jp, len(journal.state.rows), len(ids))
         t0 = time.monotonic()
         try:
