@@ -103,7 +103,7 @@ def _run_export(args) -> int:
     from ..io import check_output
     from .importers import export_file
 
-    out = check_output(args.out, inputs=[args.capture], what=f"{args.format} file")
+    out = check_output(args.out, inputs=[args.capture], what=args.format)
     cap = Capture.read(args.capture)
     export_file(cap, args.format, out, inputs=[args.capture])
     print(f"export: {args.capture} -> {out} ({args.format})")
@@ -135,6 +135,9 @@ def _acquire(args) -> int:
     from .scope import Oscilloscope, ScopeSettings
     from .session import acquire
 
+    from ..io import check_output
+
+    check_output(args.out, what="capture")   # before any emulator, instrument or forward model
     rig = None
     scan_port, det_port = args.scan_port, args.resource or args.detector_port
     channels = args.channels

@@ -133,7 +133,7 @@ def export_file(capture: Capture, fmt: str, out, inputs=()) -> Path:
     if fmt not in FORMATS or FORMATS[fmt].writer is None:
         raise ImportFormatError(f"cannot export to {fmt!r}; formats that can be written: "
                                 f"{', '.join(exporters()) or 'none'}.")
-    out = check_output(out, inputs=inputs, what=f"{fmt} file")
+    out = check_output(out, inputs=inputs, what=fmt)
     try:
         with atomic_path(out) as tmp:
             FORMATS[fmt].writer(capture, tmp)
