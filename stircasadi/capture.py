@@ -418,9 +418,21 @@ def _write_header(f, cap: Capture) -> None:
         _write_extra(f, key, val)
 
 
+def _compresses(data: np.ndarray, n_sample: int = 16) -> bool:
+    """Whether gzip+shuffle saves >= 25 % on a sample of traces (counts do, 5-15x; float noise
+    does not, and compressing it costs seconds for nothing)."""
+    import zlib
+
+    flat = data.reshape(-1, data.shape[-1])
+    rows = flat[np.linspace(0, flat.shape[0] - 1, min(n_sample, flat.shape[0])).astype(int)]
+    raw = np.ascontiguousarray(rows, dtype="<f8").view(np.uint8).reshape(-1, 8).T.tobytes()
+    return len(zlib.compress(raw, 1)) < 0.75 * len(raw)
+
+
 def _create_data(f, name: str, shape: tuple, data=None):
-    return f.create_dataset(name, shape=shape, dtype="f8", data=data, chunks=_chunks(shape),
-                            **_COMPRESSION)
+    """The trace dataset: chunked one trace per chunk, gzip+shuffle unless the data do not compress."""
+    opts = _COMPRESSION if data is None or _compresses(data) else {}
+    return f.create_dataset(name, shape=shape, dtype="f8", data=data, chunks=_chunks(shape), **opts)
 
 
 def write_into(f, cap: Capture) -> None:
