@@ -158,31 +158,26 @@ class VisaIO:
         self._err = pyvisa.errors.VisaIOError
         self._tmo = pyvisa.constants.StatusCode.error_timeout
 
-    def read_upto(self, n: int, remaining_s: float) -> bytes:
+    def _read(self, n: int, remaining_s: float, term: bytes | None) -> bytes:
         from pyvisa import constants
 
-        self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR_EN, False)
+        if term is not None:
+            self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR, term[-1])
+        self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR_EN, term is not None)
         self.res.timeout = max(1, int(remaining_s * 1000))
         try:
-            return self.res.read_bytes(n, break_on_termchar=False)
+            return self.res.read_bytes(n, break_on_termchar=term is not None)
         except self._err as exc:
             if exc.error_code == self._tmo:
                 return b""
             raise ConnectionError(str(exc)) from exc
+
+    def read_upto(self, n: int, remaining_s: float) -> bytes:
+        return self._read(n, remaining_s, None)
 
     def read_line(self, term: bytes, max_bytes: int, remaining_s: float) -> bytes:
         """One line ending in ``term`` (the VISA termination character), or b"" on timeout."""
-        from pyvisa import constants
-
-        self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR, term[-1])
-        self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR_EN, True)
-        self.res.timeout = max(1, int(remaining_s * 1000))
-        try:
-            return self.res.read_bytes(max_bytes, break_on_termchar=True)
-        except self._err as exc:
-            if exc.error_code == self._tmo:
-                return b""
-            raise ConnectionError(str(exc)) from exc
+        return self._read(max_bytes, remaining_s, term)
 
     def write(self, data: bytes) -> None:
         try:
