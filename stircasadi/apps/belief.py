@@ -190,6 +190,9 @@ class SceneBelief:
         cov_in = estimate.get("covariance")
         if cov_in:
             _merge_covariance(cov, names, cov_in, missing, notes)
+        declared = [slots[("area", r["id"])][0] for r in built if r["declared_area"]]
+        cov[declared, :] = 0.0   # a declared input is exact, whatever the joint block said
+        cov[:, declared] = 0.0
         src = _number_vec(estimate.get("source_xyz"))
         cam = _number_vec(estimate.get("camera_xyz"))
         frame = estimate.get("frame", "capture")
@@ -384,7 +387,7 @@ def _patch_record(p: dict, areas: dict, problems: list) -> dict | None:
         params.append(("specular", spec, _std_vec(p, "specular_std", 1), None))
         params.append(("exponent", expo, _std_vec(p, "exponent_std", 1), None))
     return {"id": pid, "name": name, "visible": visible, "kind": kind, "proxy": proxy,
-            "params": params}
+            "params": params, "declared_area": src_area is not None}
 
 
 def _merge_covariance(cov, names, cov_in, missing, notes) -> None:
