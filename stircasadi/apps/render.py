@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import EstimateInputError, TimeGridError
 from ..sensor import Sensor
 from ..timegrid import TimeGrid
-from ..transport import TransportSystem, needed_bounces, simulate
+from ..transport import TransportSystem, needed_bounces, path_sum, simulate
 from ..transport.deposit import kernel_support
 from .belief import SceneBelief, _psd_factor
 from .relight import Illumination, superpose
@@ -112,16 +112,29 @@ def auto_grid(scene, bin_width: float, sensor: Sensor | None = None, bounces: in
 
 def steady_state(scene) -> np.ndarray:
     """All-bounce time-integrated STIR (n_ill, n_obs): ``O0 (I - T0)^{-1} S0``."""
-    from scipy.sparse import identity
-    from scipy.sparse.linalg import spsolve
+    return _steady(TransportSystem.build(scene))
 
-    system = TransportSystem.build(scene)
-    S0, T0, O0 = system.steady_matrices()
-    if system.n_ill == 0 or system.n_obs == 0:
-        return np.zeros((system.n_ill, system.n_obs))
-    X = spsolve((identity(system.n_nodes, format="csc") - T0.tocsc()), S0.toarray())
-    X = np.asarray(X).reshape(system.n_nodes, system.n_ill)
-    return np.asarray(O0 @ X).T
+
+def _steady(system) -> np.ndarray:
+    """``O0 (I - T0)^{-1} S0`` of a built network (dense for small networks, sparse else)."""
+    N, ni, no = system.n_nodes, system.n_ill, system.n_obs
+    if ni == 0 or no == 0:
+        return np.zeros((ni, no))
+    if N > 1500:
+        from scipy.sparse import identity
+        from scipy.sparse.linalg import spsolve
+
+        S0, T0, O0 = system.steady_matrices()
+        X = np.asarray(spsolve(identity(N, format="csc") - T0.tocsc(), S0.toarray())).reshape(N, ni)
+        return np.asarray(O0 @ X).T
+
+    def dense(terms, shape):
+        r, c, v, _ = terms
+        m = np.zeros(shape)
+        np.add.at(m, (r, c), v)
+        return m
+    S0, T0, O0 = dense(system.S, (N, ni)), dense(system.T, (N, N)), dense(system.O, (no, N))
+    return (O0 @ np.linalg.solve(np.eye(N) - T0, S0)).T
 
 
 class _Renderer:
@@ -157,14 +170,21 @@ class _Renderer:
     def __call__(self, theta, nominal: bool = False) -> dict:
         scene = self.b.scene_at(theta, source=self.source, camera=self.camera,
                                 brdf_override=self.brdf_override)
-        tr = simulate(scene, self.grid, sensor=self.sensor, bounces=self.K, method=self.method,
-                      legs_included=self.legs, allow_truncation=not nominal)
+        system = TransportSystem.build(scene, legs_included=self.legs)
+        meta = None
+        if nominal or self.K == "all":
+            tr = simulate(scene, self.grid, sensor=self.sensor, bounces=self.K, method=self.method,
+                          legs_included=self.legs, allow_truncation=not nominal)
+            meta, t_stir = tr.metadata, tr.stir
+        else:  # the same path sums simulate() runs, without its grid checks and energy report
+            t_stir = path_sum(system, self.grid, self.sensor.irf, self.K)
+        tr = _Tr(t_stir, system.ill_ids, system.obs_ids)
         ids_i, ids_j = self.b.ids[tr.ill_ids], self.b.ids[tr.obs_ids]
         ri = _place(self.ill_ids, ids_i)
         rj = _place(self.obs_ids, ids_j)
         stir = np.zeros((len(self.ill_ids), len(self.obs_ids), self.grid.n_bins))
         stir[np.ix_(ri[0], rj[0])] = tr.stir[np.ix_(ri[1], rj[1])]
-        st = steady_state(scene)
+        st = _steady(system)
         steady = np.zeros((len(self.ill_ids), len(self.obs_ids)))
         steady[np.ix_(ri[0], rj[0])] = st[np.ix_(ri[1], rj[1])]
         out = {"stir": stir, "steady": steady}
@@ -175,8 +195,15 @@ class _Renderer:
             out["relit"] = r.transient
             out["relit_steady"] = np.einsum("i,ij->j", w * p.sum(axis=1), steady[rows])
         if nominal:
-            out["_meta"] = tr.metadata
+            out["_meta"] = meta
         return out
+
+
+@dataclass
+class _Tr:
+    stir: np.ndarray
+    ill_ids: np.ndarray
+    obs_ids: np.ndarray
 
 
 def _place(nominal_ids, ids):
