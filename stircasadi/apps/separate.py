@@ -15,8 +15,9 @@ interreflections, hidden patches). Three routes, which check each other:
     ``sum_i stir[i, j] - direct`` (a full STIR), or the rest of its own trace (confocal scans).
     Captures without an impulse response (or whose first return is cut by the grid start, as
     rectified relay-wall scans) use a *gate*: direct = the first family up to the valley before
-    the next family rises (found on the trace summed over patches), minus a background taken
-    from the last bins.
+    the next family rises (found on the trace summed over patches: after the first family has
+    fallen below 1 % of its peak, the first rise of the running mean by 1.5x over its running
+    minimum), minus a background taken as the median of the last 10 % of each trace.
 
 ``separate_nayar`` (Nayar et al. 2006, emulated by superposition of the same STIR)
     Two complementary binary patterns P, P' (a checkerboard over a scan layout, else alternate
@@ -68,6 +69,8 @@ Z_BOUND = 4.0
 #: the global light's rise is where the fit residual after the first return exceeds this fraction
 #: of its maximum (a Gaussian pulse reaches 1e-3 of its peak 3.7 sigma before its centre)
 RISE_FRAC = 1e-3
+#: gate mode: the next family starts where the running mean rises this factor above its running minimum
+RISE_GATE = 1.5
 
 __all__ = ["Separation", "separate_onsets", "separate_nayar", "separate_bounces", "separate_capture"]
 
@@ -218,11 +221,20 @@ def _gate(traces, grid, background_frac: float = 0.1) -> Separation:
     nb = max(4, int(background_frac * grid.n_bins))
     b = np.median(traces[:, -nb:], axis=1)
     Sb = S - b.sum()
-    # valley: the first minimum of a 9-bin running mean after the peak
-    sm = np.convolve(Sb, np.ones(9) / 9, mode="same")
-    gate = k_pk + 1
-    while gate < grid.n_bins - 5 and not (sm[gate] <= sm[gate + 1:gate + 6].min()):
-        gate += 1
+    # valley: after the first family has fallen below 1 % of its peak, the lowest point of the
+    # running mean before the next family's maximum (or the background, if none rises again)
+    from scipy.ndimage import uniform_filter1d
+
+    sm = uniform_filter1d(Sb, size=max(9, grid.n_bins // 100), mode="nearest")
+    below = np.flatnonzero(sm[k_pk:] < 1e-2 * sm[k_pk])
+    k1 = min(k_pk + (int(below[0]) if len(below) else 1), grid.n_bins - 2)
+    runmin = np.minimum.accumulate(sm[k1:])
+    rise = np.flatnonzero(sm[k1:] > RISE_GATE * np.maximum(runmin, 1e-300))
+    if len(rise):   # the next family: gate at the valley before it
+        gate = k1 + int(np.argmin(sm[k1:k1 + int(rise[0])]))
+    else:           # none: where the first family has decayed to 1.1 x the final level
+        flat = np.flatnonzero(sm[k1:] <= 1.1 * max(sm[-nb:].mean(), 1e-300))
+        gate = k1 + (int(flat[0]) if len(flat) else 0)
     y = traces - b[:, None]
     D = np.zeros_like(traces)
     D[:, :gate] = y[:, :gate]
