@@ -306,7 +306,10 @@ def deconvolve(records: np.ndarray, codes, n_bins: int, sigma: float | None = No
     H2 = np.clip(H2, 0.0, None)
     env = _envelope(irf, bin_width, P)
     if env is not None:  # a non-negative STIR has |H_q| <= H_0 |IRF_q sinc_q| (caps the noisy plug-in)
-        H0 = np.clip(np.abs(B[:, 0] / S[0]) if S[0] > 0 else np.abs(Hh[:, 0]), 0.0, None)
+        # H_0 (the trace's energy) at its estimate plus two of its std: a cap that stays a cap
+        # when a trace is buried in the noise
+        H0 = (np.abs(B[:, 0] / S[0]) + 2 * np.sqrt(P / S[0]) * sig if S[0] > 0
+              else np.abs(Hh[:, 0]))
         H2 = np.minimum(H2, (H0[:, None] * env[None, :]) ** 2)
     shrink = np.where(live, lam[:, None] * Lq[None, :] / Dsafe, 1.0)
     bias2 = np.sum(shrink ** 2 * H2, axis=1) / P

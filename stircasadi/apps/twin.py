@@ -68,7 +68,8 @@ def estimate_from_scene(scene: Scene, std: dict, rng: np.random.Generator | None
     cov = sig[:, None] * R * sig[None, :]
     vals = truth.copy()
     if rng is not None:
-        vals = truth + _psd_factor(cov) @ rng.standard_normal(_psd_factor(cov).shape[1])
+        L = np.diag(sig) if not correlation else _psd_factor(cov)
+        vals = truth + L @ rng.standard_normal(L.shape[1])
     got = dict(zip(names, vals))
     sd = dict(zip(names, sig))
     patches = []
