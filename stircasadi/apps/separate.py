@@ -17,7 +17,7 @@ interreflections, hidden patches). Three routes, which check each other:
     rectified relay-wall scans) use a *gate*: direct = the first family up to the valley before
     the next family rises (found on the trace summed over patches: after the first family has
     fallen below 1 % of its peak, the first rise of the running mean by 1.5x over its running
-    minimum), minus a background taken as the median of the last 10 % of each trace.
+    minimum), minus a background taken as the mean of the last 10 % of each trace.
 
 ``separate_nayar`` (Nayar et al. 2006, emulated by superposition of the same STIR)
     Two complementary binary patterns P, P' (a checkerboard over a scan layout, else alternate
@@ -219,7 +219,7 @@ def _gate(traces, grid, background_frac: float = 0.1) -> Separation:
     k0 = int(np.argmax(S >= 0.2 * S.max()))
     k_pk = k0 + int(np.argmax(S[k0:k0 + max(8, grid.n_bins // 50)]))
     nb = max(4, int(background_frac * grid.n_bins))
-    b = np.median(traces[:, -nb:], axis=1)
+    b = np.mean(traces[:, -nb:], axis=1)   # mean, not median: photon counts below one per bin
     Sb = S - b.sum()
     # valley: after the first family has fallen below 1 % of its peak, the lowest point of the
     # running mean before the next family's maximum (or the background, if none rises again)
