@@ -12,7 +12,7 @@ from stircasadi.apps.relight import Illumination, relight_capture
 from stircasadi.apps.twin import estimate_from_scene
 from stircasadi.capture import Capture
 from stircasadi.cli import build_parser, main
-from stircasadi.problems import lambertian_walls, three_patch
+from stircasadi.problems import lambertian_walls
 
 STD = {"position": 0.002, "normal": 0.01, "area": 1e-5, "albedo": 0.01}
 

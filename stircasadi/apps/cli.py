@@ -7,6 +7,7 @@
                        --brdf lambertian|phong --albedo A [--specular S --exponent N]
     stircasadi deconvolve RECORDS.h5 --out capture.h5      (or --emulate PROBLEM --code mls:9)
 
+Errors are ``StircasadiError``: ``stircasadi.cli.main`` prints them as one line and exits 2.
 Each command checks every output path before computing (an output equal to an input, a missing
 folder: refused), writes its HDF5/JSON result atomically and, with ``--pictures DIR`` (default:
 ``<out>_pictures`` beside the result; ``--no-pictures`` to skip), PNG pictures.
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +94,14 @@ def _common(p, out_help, suffix):
     p.add_argument("--no-pictures", action="store_true", help="write the result only, no pictures")
 
 
-def _estimate_args(p):
+def _estimate_args(p, render: bool = False):
+    if render:
+        p.add_argument("--source", default=None, help="source position x,y,z (m, the estimate's frame; "
+                                                      "default: the estimate's; needs --estimate)")
+        p.add_argument("--camera", default=None, help="camera position x,y,z (m, the estimate's frame; "
+                                                      "default: the estimate's; needs --estimate)")
+        p.add_argument("--bin-width", type=float, default=0.005, help="bin width (m) when no capture gives one")
+        p.add_argument("--no-std", action="store_true", help="skip the uncertainty propagation (one render)")
     p.add_argument("--area", action="append", metavar="ID=A",
                    help="declare the area (m^2) of a patch the estimate leaves null (repeatable)")
     p.add_argument("--exclude", default=None, metavar="IDS",
@@ -418,16 +425,6 @@ def _run_deconvolve(args) -> int:
 
 
 # ---------------------------------------------------------------------- registration
-def _guard(fn):
-    def run(args):
-        try:
-            return fn(args)
-        except StircasadiError as exc:
-            print(f"stircasadi {args.command}: {exc}", file=sys.stderr)
-            return 2
-    return run
-
-
 def add_parsers(sub) -> None:
     """Register relight, separate, segment, replace and deconvolve on ``sub``."""
     f = argparse.ArgumentDefaultsHelpFormatter
@@ -441,13 +438,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--ids", default=None, help="patch ids the weights belong to (default: every illuminated patch in order)")
     r.add_argument("--delays", default=None, help="emission delay per weight, metres of optical path")
     r.add_argument("--pulse", default=None, help="temporal pulse shape, energy per bin (comma-separated; default an impulse)")
-    r.add_argument("--source", default=None, help="new source position x,y,z (m, the estimate's frame; needs --estimate)")
-    r.add_argument("--camera", default=None, help="new camera position x,y,z (m, the estimate's frame; needs --estimate)")
     r.add_argument("--bounces", default=None, help="bounce order of the render (default: what the scene needs; or 'all')")
-    r.add_argument("--bin-width", type=float, default=0.005, help="bin width (m) when no capture gives one")
-    r.add_argument("--no-std", action="store_true", help="skip the uncertainty propagation (one render)")
-    _estimate_args(r)
-    r.set_defaults(func=_guard(lambda a: _run_relight(_fix_xyz(a))))
+    _estimate_args(r, render=True)
+    r.set_defaults(func=lambda a: _run_relight(_fix_xyz(a)))
 
     s = sub.add_parser("separate", formatter_class=f, help="direct/global separation of a capture per patch")
     s.add_argument("capture", help="Capture HDF5 (full STIR, or confocal traces)")
@@ -456,7 +449,7 @@ def add_parsers(sub) -> None:
     s.add_argument("--nayar", action="store_true", help="also emulate Nayar et al.'s two complementary patterns")
     s.add_argument("--layout", default=None, metavar="ROWS,COLS",
                    help="scan grid of the illuminated patches for the checkerboard (default: alternate ids)")
-    s.set_defaults(func=_guard(_run_separate))
+    s.set_defaults(func=_run_separate)
 
     g = sub.add_parser("segment", formatter_class=f, help="group the estimate's patches into materials")
     g.add_argument("estimate", help="estimate.json")
@@ -464,7 +457,7 @@ def add_parsers(sub) -> None:
     g.add_argument("--level", type=float, default=0.01, help="test level of the chi-square tests")
     g.add_argument("--max-materials", type=int, default=None, help="most materials considered")
     _estimate_args(g)
-    g.set_defaults(func=_guard(_run_segment))
+    g.set_defaults(func=_run_segment)
 
     p = sub.add_parser("replace", formatter_class=f, help="give patches another BRDF and re-render before/after")
     p.add_argument("estimate", help="estimate.json")
@@ -478,12 +471,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--specular", type=float, default=None, help="Phong specular reflectance (albedo + specular <= 1)")
     p.add_argument("--exponent", type=float, default=None, help="Phong exponent >= 0")
     p.add_argument("--capture", default=None, help="Capture whose impulse response and bin width the render uses")
-    p.add_argument("--source", default=None, help="source position x,y,z (default: the estimate's)")
-    p.add_argument("--camera", default=None, help="camera position x,y,z (default: the estimate's)")
-    p.add_argument("--bin-width", type=float, default=0.005, help="bin width (m) when no capture gives one")
-    p.add_argument("--no-std", action="store_true", help="skip the uncertainty propagation")
-    _estimate_args(p)
-    p.set_defaults(func=_guard(lambda a: _run_replace(_fix_xyz(a))))
+    _estimate_args(p, render=True)
+    p.set_defaults(func=lambda a: _run_replace(_fix_xyz(a)))
 
     d = sub.add_parser("deconvolve", formatter_class=f,
                        help="recover the impulse STIR from coded-illumination records")
@@ -497,7 +486,7 @@ def add_parsers(sub) -> None:
     d.add_argument("--noise", type=float, default=1e-3, help="with --emulate: noise std as a fraction of the STIR's peak")
     d.add_argument("--seed", type=int, default=0, help="with --emulate: noise seed")
     d.add_argument("--save-records", default=None, help="with --emulate: also write the records file here")
-    d.set_defaults(func=_guard(_run_deconvolve))
+    d.set_defaults(func=_run_deconvolve)
 
 
 def _fix_xyz(args):

@@ -35,6 +35,19 @@ def _save(fig, path):
     return path
 
 
+def _finish(ax, own: bool, path):
+    """Save and close a figure this module made (returning its path); else return the axis."""
+    if not own:
+        return ax
+    import matplotlib.pyplot as plt
+
+    fig = ax.figure
+    fig.tight_layout()
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
 def _squares(positions, normals, areas):
     out = []
     for c, n, a in zip(positions, normals, areas):
@@ -92,12 +105,7 @@ def patch_image(positions, normals, areas, values, camera, path=None, title: str
     ax.set_title(title, fontsize=9)
     sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
     ax.figure.colorbar(sm, ax=ax, label=label, shrink=0.8)
-    if own:
-        fig.tight_layout()
-        out = _save(fig, path)
-        plt.close(fig)
-        return out
-    return ax
+    return _finish(ax, own, path)
 
 
 def scan_image(values, shape, path=None, title: str = "", label: str = "", log: bool = False, ax=None):
@@ -113,12 +121,7 @@ def scan_image(values, shape, path=None, title: str = "", label: str = "", log: 
     im = ax.imshow(img, origin="lower", cmap="inferno", norm=norm)
     ax.set_title(title, fontsize=9)
     ax.figure.colorbar(im, ax=ax, label=label, shrink=0.8)
-    if own:
-        fig.tight_layout()
-        out = _save(fig, path)
-        plt.close(fig)
-        return out
-    return ax
+    return _finish(ax, own, path)
 
 
 def profiles(t, curves: dict, path=None, title: str = "", log: bool = False, bands: dict | None = None,
@@ -142,12 +145,7 @@ def profiles(t, curves: dict, path=None, title: str = "", log: bool = False, ban
     ax.set_ylabel("radiance per bin")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
-    if own:
-        fig.tight_layout()
-        out = _save(fig, path)
-        plt.close(fig)
-        return out
-    return ax
+    return _finish(ax, own, path)
 
 
 def bars(ids, series: dict, path=None, title: str = "", errors: dict | None = None, ax=None,
@@ -169,9 +167,4 @@ def bars(ids, series: dict, path=None, title: str = "", errors: dict | None = No
         ax.set_yscale("log")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
-    if own:
-        fig.tight_layout()
-        out = _save(fig, path)
-        plt.close(fig)
-        return out
-    return ax
+    return _finish(ax, own, path)
