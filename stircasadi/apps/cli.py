@@ -368,6 +368,7 @@ def _run_deconvolve(args) -> int:
 
     ins = [args.records] if args.records else []
     out, pics = _outputs(args, ins, (".h5",))
+    check_output(out.with_suffix(".json"), inputs=ins, what="summary", suffixes=(".json",))
     truth = None
     if args.records is None:
         if not args.emulate:
