@@ -228,6 +228,12 @@ def build_parser() -> argparse.ArgumentParser:
         add_parsers = None
     if add_parsers is not None:
         add_parsers(sub)
+    try:
+        from .apps.cli import add_parsers as add_app_parsers
+    except ImportError:
+        add_app_parsers = None
+    if add_app_parsers is not None:
+        add_app_parsers(sub)
     return p
 
 
