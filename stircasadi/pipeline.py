@@ -93,14 +93,19 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     M = len(view.ids)
     if not np.array_equal(np.asarray(geo.ids[:M]), view.ids):
         raise GeometryError("internal: geometry ids differ from the capture's visible ids")
-    from .geometry.normals import initial_normals
+    from .geometry.normals import flat_groups, initial_normals
 
     pairs = np.isfinite(geo.distances[:M, :M])
     np.fill_diagonal(pairs, False)
-    n0, _ = initial_normals(geo.positions[:M], pairs, geo.camera_xyz if geo.camera_xyz is not None
-                            else view.camera, labels=None if geo.plane_labels is None else geo.plane_labels[:M])
-    start = VisibleStart(np.asarray(geo.positions[:M]), np.asarray(geo.position_std[:M]), n0,
-                         pairs=pairs)
+    X = np.asarray(geo.positions[:M])
+    ps = np.asarray(geo.position_std[:M], float)
+    e = geo.eps[:M, :M][np.isfinite(geo.eps[:M, :M]) & (geo.eps[:M, :M] > 0)]
+    sig = float(np.nanmedian(ps)) if np.isfinite(ps).any() else (
+        float(np.median(e)) / 2.576 if e.size else view.grid.bin_width)
+    labels, gn, gstd = flat_groups(X, pairs, sig)
+    cam = geo.camera_xyz if geo.camera_xyz is not None else view.camera
+    n0, _ = initial_normals(X, pairs, cam, labels=labels)
+    start = VisibleStart(X, ps, n0, pairs=pairs, normal_prior_std=np.where(labels >= 0, gstd, np.nan))
     t1 = time.perf_counter()
     fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf)
     t_fit = time.perf_counter() - t1

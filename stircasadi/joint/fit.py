@@ -55,22 +55,24 @@ def noise_level(view, support=None) -> tuple[float, str, list]:
 
     stir = view.capture.stir
     notes = []
-    data = None
+    # two robust estimates: first differences of every trace (returns occupy few bins), and the
+    # bins no modelled path reaches (unmodelled returns can inflate it): the smaller is kept
+    data = noise_from_data(stir.reshape(-1, stir.shape[-1]))
+    off = np.zeros(0)
     if support is not None:
         mask = np.ones(stir.size, bool)
         mask[support] = False
         off = stir.reshape(-1)[mask]
         if off.size >= 200:
             med = np.median(off)
-            data = float(np.median(np.abs(off - med)) / 0.6745)
-    if data is None or data == 0.0:
-        data = noise_from_data(stir.reshape(-1, stir.shape[-1]))
-    if data == 0.0:  # quantised or noise-free data: the rms of the off-model bins, else a floor
+            d_off = float(np.median(np.abs(off - med)) / 0.6745)
+            data = min(data, d_off) if data > 0 and d_off > 0 else max(data, d_off)
+    if data == 0.0:  # quantised or noise-free data: a floor at the arithmetic's resolution
         peak = float(np.max(np.abs(stir))) or 1.0
-        rms = float(np.sqrt(np.mean(off ** 2))) if support is not None and off.size else 0.0
-        data = rms if rms > 0 else 1e-8 * peak
-        notes.append("the data show no measurable noise (quantised or noise-free); sigma "
-                     f"{data:.3g} = {'the rms of the bins no path reaches' if rms > 0 else '1e-8 of the peak'}")
+        data = 1e-8 * peak
+        notes.append(f"the data show no measurable noise (quantised or noise-free); sigma {data:.3g} "
+                     "= 1e-8 of the peak")
+        return data, "floor (noise-free data)", notes
     cap = view.capture_sigma
     if cap:
         if data > 1.5 * cap:
@@ -97,19 +99,36 @@ def fit_model(model, stir, settings=None, noise: dict | None = None, sigma=None,
 
 
 def _solve(nlp, warm=None):
-    """Solve with the unknowns the data cannot separate held at their start (``degenerate``);
-    they are reported unidentified (``nlp.frozen``)."""
+    """Solve; when IPOPT cannot converge because the data leave directions flat (a degenerate
+    problem: it crawls along the valley), hold the unknowns of those directions
+    (``uncertainty.degenerate`` at the point reached) and solve again from there. The held
+    unknowns are reported unidentified (``nlp.frozen``)."""
     from .uncertainty import degenerate
 
-    nlp.frozen = degenerate(nlp, nlp.x0)
-    if nlp.frozen:
-        nlp.lbx = nlp.lbx.copy()
-        nlp.ubx = nlp.ubx.copy()
-        nlp.lbx[nlp.frozen] = nlp.ubx[nlp.frozen] = np.clip(nlp.x0[nlp.frozen], nlp.lbx[nlp.frozen],
-                                                              nlp.ubx[nlp.frozen])
+    nlp.frozen = []
     if nlp.settings.solver == "lm":
         return solve_lm(nlp)
-    return solve_nlp(nlp, warm=warm)
+    st = nlp.settings.ipopt
+    raise_ = st.raise_on_failure
+    st.raise_on_failure = False
+    try:
+        sol = solve_nlp(nlp, warm=warm)
+    finally:
+        st.raise_on_failure = raise_
+    if sol.success:
+        return sol
+    frozen = degenerate(nlp, sol.x)
+    if not frozen:
+        if raise_:
+            raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
+                              f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
+                              "guess, more max_iter, or check that the data match the model.",
+                              status=sol.status, stats={"iterations": sol.iterations})
+        return sol
+    nlp.frozen = frozen
+    nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
+    nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
+    return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
 
 
 def _model_chi2(nlp, x, stir) -> float:
@@ -143,7 +162,8 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     notes = plan.notes + notes
 
     def make_nlp(pl):
-        nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge)
+        nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge,
+                        prior=pl.prior)
         return nlp_
 
     nlp = make_nlp(plan)
@@ -156,7 +176,8 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
              f"({sol.status}, {sol.iterations} iterations)")
     th = plan.model.theta(sol.x[:plan.model.n_x])
     vis_start = VisibleStart(th["position"][:M], start.position_std, th["normal"][:M],
-                             th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"])
+                             th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"],
+                             start.normal_prior_std)
     cur_nlp, cur_x = nlp, sol.x
     plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
     want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
