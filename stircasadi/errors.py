@@ -72,3 +72,7 @@ class PhysicsWarning(UserWarning):
 
 class AcquisitionSettingsError(StircasadiError, ValueError):
     """An acquisition setting (port, baud rate, timeout, shots...) is outside its allowed range."""
+
+
+class ReconstructionError(StircasadiError, ValueError):
+    """A relay-wall (NLOS) reconstruction cannot run on the given capture or settings."""
