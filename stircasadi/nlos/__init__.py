@@ -11,3 +11,8 @@ from .volume import Maps, Volume
 
 __all__ = ["lct", "fk", "backprojection", "Relay", "from_capture", "from_stir", "VolumeSettings",
            "Volume", "Maps"]
+from .estimate import METHODS, NLOSEstimate, estimate_capture
+from .surface import SurfaceResult, SurfaceSettings, fit_surface
+
+__all__ += ["estimate_capture", "NLOSEstimate", "METHODS", "fit_surface", "SurfaceSettings",
+            "SurfaceResult"]

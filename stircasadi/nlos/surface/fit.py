@@ -186,7 +186,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         s_b = max(float(np.sqrt(np.mean(1.0 / wgt))), 1e-300)
         info = {"nodes": n, "rows": int(y.size), "solves": []}
         sig_lo, sig_hi = sig_first / 3.0, 2.5 * sig_first
-        for rep in range(2 if st.prior == "auto" else 1):
+        last = li == len(sizes) - 1
+        for rep in range(2 if (st.prior == "auto" and last) else 1):
             if st.solver == "lm":
                 model = SurfaceModel(grid, rl, z, sig_hi, slack, st.chunk_pairs)
                 res = solve_lm(model, y, wgt, z, rho, sig_c, bg, lam, lap, h, slack, rho_max,
@@ -214,7 +215,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             dof = max(int(y.size) - npar, 1)
             gvec = np.concatenate([grads[0], grads[1]] + ([np.array([grads[2]])] if st.fit_sigma else [])
                                   + [np.array([grads[3]])])
-            if st.prior != "auto":
+            if st.prior != "auto" or not last:
                 break
             new_lam, curve = _choose_lambda(H, gvec, chi2, dof, R, slice(0, grid.n), lam)
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]

@@ -25,7 +25,7 @@ import numpy as np
 from ...timegrid import TimeGrid
 from ..relay import Relay
 from .grid import DepthGrid
-from .physics import deposit_window, relay_amplitude, relay_delay
+from .physics import cell_spread, deposit_window, relay_amplitude, relay_delay
 
 __all__ = ["SurfaceModel"]
 
@@ -43,7 +43,9 @@ class SurfaceModel:
         self.P = relay.n_traces
         self.N = grid.n
         self.Gx, self.Gy = grid.gradient_ops()
-        self.half = 4.5 * sigma_max + (2.0 * z_slack + self.w)
+        # window: the IRF, the cell's own delay spread (at most 2 sides x 2 / sqrt(12)), slack
+        cell = 2.0 * max(grid.hx, grid.hy) / math.sqrt(3.0)
+        self.half = 4.5 * math.sqrt(sigma_max ** 2 + cell ** 2) + (2.0 * z_slack + self.w)
         self.n_win = int(math.ceil(2 * self.half / self.w)) + 1
         self.base = grid.base_points()
         self.chunk = max(1, int(chunk_pairs // max(self.N, 1)))
@@ -70,7 +72,8 @@ class SurfaceModel:
         amp = relay_amplitude(q[3:6], q[6:9], q[9:12], q[12:15], X, nX, area, rho, q[16])
         tau = relay_delay(q[3:6], q[6:9], X, q[15])
         left = q[17] + ca.DM(np.arange(self.n_win) * self.w)
-        y = deposit_window(amp, tau, left, self.w, sig)
+        spread = cell_spread(q[3:6], q[6:9], X, u + gx * wv, v + gy * wv, self.grid.hx, self.grid.hy)
+        y = deposit_window(amp, tau, left, self.w, ca.sqrt(sig ** 2 + spread ** 2))
         self.f_val = ca.Function("pair", [p, q], [y])
         self.f_jac = ca.Function("pair_jac", [p, q], [y, ca.jacobian(y, p)])
 

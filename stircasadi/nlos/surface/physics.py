@@ -34,7 +34,7 @@ from ... import _backend as B
 from ...irf import GaussianIRF, bin_integral
 from ...radiometry import form_factor
 
-__all__ = ["dot3", "norm3", "relay_amplitude", "relay_delay", "deposit_window"]
+__all__ = ["dot3", "norm3", "relay_amplitude", "relay_delay", "deposit_window", "cell_spread"]
 
 
 def dot3(a, b):
@@ -78,3 +78,15 @@ def deposit_window(amp, tau, left, width: float, sigma):
     project's ``irf.bin_integral`` of the unit Gaussian at scaled offsets, since
     B_sigma(x, w) = B_1(x / sigma, w / sigma)."""
     return amp * bin_integral(_UNIT, (left - tau) / sigma, width / sigma)
+
+
+def cell_spread(L, D, X, ta, tb, ha: float, hb: float):
+    """Std of the path length over a grid cell of sides ha x hb with tangents ta, tb at X:
+    tau varies linearly across it, tau_a = (u_XL + u_XD) . ta, so the delays spread as a box
+    of variance (ha^2 tau_a^2 + hb^2 tau_b^2) / 12, added to the IRF's variance (moment
+    matching; exact in the limit of a cell much smaller than the IRF width)."""
+    uL = (X - L) / norm3(X - L)
+    uD = (X - D) / norm3(X - D)
+    g_a = dot3(uL + uD, ta)
+    g_b = dot3(uL + uD, tb)
+    return B.sqrt((ha * ha * g_a * g_a + hb * hb * g_b * g_b) / 12.0)

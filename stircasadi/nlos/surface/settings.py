@@ -42,7 +42,7 @@ class SurfaceSettings:
     #: iteration limit per solve (LM iterations, or IPOPT iterations)
     max_iter: int = 30
     #: IPOPT tolerance (relative to the scaled objective)
-    tol: float = 1e-6
+    tol: float = 1e-5
     #: noise std per bin (data units); None: the relay's sigma, Poisson for counts, else
     #: estimated from the data (MAD of first differences)
     noise_sigma: float | None = None
