@@ -29,9 +29,10 @@ class SurfaceSettings:
     #: 1 and reported as such; False: a global gain is set from the initialiser and the albedo is
     #: relative (its upper bound lifted)
     known_gain: bool = False
-    #: smoothness prior on the depth map's Laplacian: "auto" (weight by the discrepancy
-    #: principle), "none", or a fixed non-negative weight
-    prior: str | float = "auto"
+    #: smoothness prior on the depth map's Laplacian: "none" (default: the std maps are the
+    #: data's own Fisher bounds), "auto" (weight by the discrepancy principle; the std are then
+    #: posterior std that do not cover the prior's bias), or a fixed non-negative weight
+    prior: str | float = "none"
     #: depth change allowed within one solve (metres); None: 3 bins of path
     z_slack: float | None = None
     #: "lm": bounded Levenberg-Marquardt with the exact Gauss-Newton matrix (default; 5-20
