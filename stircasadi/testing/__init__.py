@@ -1,0 +1,4 @@
+"""Helpers for test suites that compare estimates with known scenes (``stircasadi.testing``)."""
+from .scenes import GeneratedScene, generate
+
+__all__ = ["GeneratedScene", "generate"]
