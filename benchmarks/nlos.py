@@ -63,6 +63,7 @@ def main(argv=None):
     ap.add_argument("--charts", default="resolution,dot")
     ap.add_argument("--ytal-bp", action="store_true", help="also run y-tal's bp (15 GiB, minutes)")
     ap.add_argument("--no-ytal", action="store_true")
+    ap.add_argument("--no-bp", action="store_true", help="skip our backprojection (minutes on 2 cores)")
     ap.add_argument("--surface", default="8,16", help="surface grid sizes (nodes per side)")
     a = ap.parse_args(argv)
     rows = []
@@ -79,6 +80,8 @@ def main(argv=None):
                               bin_factor=4, n_lateral=32, z_range=(0.2, 0.7), n_depth=121))),
                           ("fbp 64x64", lambda: backprojection(relay, VolumeSettings(
                               bin_factor=4, n_lateral=64, z_range=(0.2, 0.7), n_depth=121)))):
+            if a.no_bp and label.startswith("fbp"):
+                continue
             vol, dt, gib = measure(fn)
             rows.append({"chart": name, "method": label, "time_s": dt, "peak_gib": gib, "depth_m": depth_of(vol)})
             print(rows[-1], flush=True)
