@@ -98,7 +98,7 @@ def fit_model(model, stir, settings=None, noise: dict | None = None, sigma=None,
     return est
 
 
-def _solve(nlp, warm=None):
+def _solve(nlp, warm=None, x0=None, strict: bool = True):
     """Solve; when IPOPT cannot converge because the data leave directions flat (a degenerate
     problem: it crawls along the valley), hold the unknowns of those directions
     (``uncertainty.degenerate`` at the point reached) and solve again from there. The held
@@ -112,14 +112,14 @@ def _solve(nlp, warm=None):
     raise_ = st.raise_on_failure
     st.raise_on_failure = False
     try:
-        sol = solve_nlp(nlp, warm=warm)
+        sol = solve_nlp(nlp, warm=warm, x0=x0)
     finally:
         st.raise_on_failure = raise_
     if sol.success:
         return sol
     frozen = degenerate(nlp, sol.x)
     if not frozen:
-        if raise_:
+        if raise_ and strict:
             raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
                               f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
                               "guess, more max_iter, or check that the data match the model.",
@@ -167,8 +167,25 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         return nlp_
 
     nlp = make_nlp(plan)
-    sol = _solve(nlp)
+    sol = _solve(nlp, strict=settings.bounces is not None)
     M = len(view.ids)
+    # the bounce order the data call for: add one while its paths show above the noise
+    K = plan.model.bounces
+    k_max = settings.bounces or (4 if M <= 20 else 3)
+    while settings.bounces is None and K < k_max:
+        plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K + 1)
+        if plan_k.model.n_x != plan.model.n_x:
+            break
+        extra = plan_k.model.simulate(sol.x[:plan.model.n_x]) - plan.model.simulate(sol.x[:plan.model.n_x])
+        big = float(np.max(np.abs(nlp.whiten(extra, 0.0 * extra))))
+        log.info(f"bounce {K + 1}: its paths reach {big:.3g} noise std at the fit")
+        if big <= 3.0:
+            break
+        K += 1
+        plan, nlp = plan_k, make_nlp(plan_k)
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=False)
+    if not sol.success:  # the bounce order is settled: the solve must converge now
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
     chi2_cur = _model_chi2(nlp, sol.x, stir)
     history = [{"n_hidden": len(hidden), "chi2": chi2_cur, "status": sol.status,
                 "wall_time_s": time.perf_counter() - t0}]
@@ -196,7 +213,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         hs = HiddenStart(cand.position, cand.normal, albedo_area=float(np.clip(cand.beta / 0.25, 1e-6, 0.5)))
         try:
             planq = plan_model(view, vis_start, settings, hidden + [hs], brdf=brdf, fixed_visible=True,
-                               extended=False)
+                               extended=False, bounces=K)
             nlpq = make_nlp(planq)
             solq = _solve(nlpq)
         except SolverError as exc:
@@ -221,7 +238,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     if n_hidden is not None and len(hidden) < n_hidden:
         notes.append(f"--hidden {n_hidden}: only {len(hidden)} hidden patches could be placed")
     if hidden:  # the final joint fit: everything free, hidden patches as discs
-        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=settings.bounces)
+        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K)
         nlp = make_nlp(plan)
         sol = _solve(nlp)
         history.append({"n_hidden": len(hidden), "final": True,

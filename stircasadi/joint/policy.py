@@ -196,7 +196,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     if brdf == "phong":
         gl[:M] = True
     brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if gl[k] else Lambertian(float(alb0[k])) for k in range(M + Hn)]
-    K = bounces or (3 if Hn else 2)
+    K = max(bounces or 2, 3 if Hn else 2)
     from ..radiometry import facing_matrix
 
     vis_m = facing_matrix(Z, Nn)
@@ -204,7 +204,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         vis_m[:M, :M] = np.asarray(geo.pairs, bool) & ~np.eye(M, dtype=bool)
     model = TransientModel(Z, Nn, a0, view.grid, view.irf, rows, cols, brdfs, source=view.source,
                            camera=view.camera, legs_included=view.capture.legs_included, bounces=K,
-                           names=names, visibility=vis_m)
+                           names=names, visibility=vis_m, bounces_hidden=3)
     # ---- visible patches
     known_pos = np.isfinite(view.known_xyz).all(axis=1)
     ray = np.isfinite(view.rays).all(axis=1) & ~known_pos
