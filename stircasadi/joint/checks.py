@@ -13,6 +13,7 @@ estimate UNRELIABLE (``success`` false, non-zero exit). The checks:
 * ``reciprocity``: with source and camera at one point the STIR is symmetric (Helmholtz), so
   traces (i, j) and (j, i) must agree within their noise: a model-free test of the data and of
   the id bookkeeping.
+* ``hidden-placed``: every hidden patch the data asked for has an identified position.
 * ``plausibility``: every first-bounce path is positive and the scene fits in ``max_extent_m``;
   the impulse response is between 0.1 mm and 3 m of path (10 ns) wide (a bin width given in the
   wrong unit shows here).
@@ -145,6 +146,19 @@ def run_checks(view, fit, settings, first_paths=None) -> list[Check]:
                          f"largest residual return {zmax:.3g} noise std (pulse at {int(view.ill[ri])}, "
                          f"seen from {int(view.obs[ci])}, path {view.grid.centres[k]:.4g} m)"
                          + ("" if ok else f"; {n_sig} traces hold returns no modelled patch explains")))
+    # hidden patches the data ask for must be placed: a return explained by a patch whose
+    # position the data cannot pin (two visible patches: a circle; collinear ones: a ring) is
+    # not a placed patch
+    M_vis = len(view.ids)
+    n_h = len(est.identifiable["position"]) - M_vis
+    if n_h > 0:
+        bad = [k - M_vis + 1 for k in range(M_vis, M_vis + n_h) if not est.identifiable["position"][k]]
+        out.append(Check("hidden-placed", not bad, float(len(bad)), 0.0,
+                         f"{n_h - len(bad)} of {n_h} hidden patches placed"
+                         + ("" if not bad else f"; the returns of hidden patches {bad} are explained but "
+                            "their positions are not identified (the visible patches do not pin them: "
+                            "two of them leave a circle, collinear ones a ring) — give a prior "
+                            "(--flatland) or more visible patches")))
     rc = _reciprocity(view, nlp, cs.reciprocity_k, cs.trace_p, pred)
     if rc is not None:
         out.append(rc)

@@ -108,6 +108,10 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
     nlp.frozen = []
     if nlp.settings.solver == "lm":
         return solve_lm(nlp)
+    if len(nlp.y) * nlp.n_x > 2e8 and not nlp.poisson and not nlp.pem:
+        # too large for IPOPT's exact Hessian: Levenberg-Marquardt on the sparse Jacobian
+        from .lm import solve_sparse_lm
+        return solve_sparse_lm(nlp, x0=x0 if x0 is not None else (warm.x if warm is not None else None))
     st = nlp.settings.ipopt
     raise_ = st.raise_on_failure
     st.raise_on_failure = False
@@ -172,7 +176,12 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     # the bounce order the data call for: add one while its paths show above the noise
     K = plan.model.bounces
     k_max = settings.bounces or (4 if M <= 20 else 3)
+    deg = max(float(np.asarray(plan.model.visibility).sum(axis=1).mean()), 1.0)
     while settings.bounces is None and K < k_max:
+        if plan.model.info.n_paths * deg > 3e5:
+            notes.append(f"bounce order held at {K}: the next order's ~{plan.model.info.n_paths * deg:.2g} "
+                         "paths exceed the model's budget (its light, if above the noise, shows in chi2)")
+            break
         plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K + 1)
         if plan_k.model.n_x != plan.model.n_x:
             break
@@ -237,8 +246,21 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
                         "wall_time_s": time.perf_counter() - t0})
     if n_hidden is not None and len(hidden) < n_hidden:
         notes.append(f"--hidden {n_hidden}: only {len(hidden)} hidden patches could be placed")
-    if hidden:  # the final joint fit: everything free, hidden patches as discs
-        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K)
+    extended = set()
+    if hidden and settings.search.extended:  # which hidden patches show their size
+        for j in range(len(hidden)):
+            try:
+                pl_e = plan_model(view, vis_start, settings, hidden, brdf=brdf, fixed_visible=True,
+                                  extended={j}, bounces=K)
+                sol_e = _solve(make_nlp(pl_e), strict=False)
+            except SolverError:
+                continue
+            gain = chi2_cur - _model_chi2(make_nlp(pl_e), sol_e.x, stir)
+            if sol_e.success and gain > lr_threshold(settings.search.p_value, 1):
+                extended.add(j)
+        log.info(f"hidden patches whose extent the data resolve: {sorted(extended) or 'none'}")
+    if hidden:  # the final joint fit: everything free
+        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K, extended=extended)
         nlp = make_nlp(plan)
         sol = _solve(nlp)
         history.append({"n_hidden": len(hidden), "final": True,

@@ -138,11 +138,9 @@ class JointNLP:
         if cs.weak_prior:
             # the weak prior of uncertainty.PRIOR_RANGE: directions the data do not see stay at
             # the start instead of wandering (negligible where the data inform)
-            from .uncertainty import PRIOR_RANGE
+            from .uncertainty import prior_std_x
 
-            sc = np.asarray(model.x_scale, float)
-            ps = np.array([PRIOR_RANGE.get(b[0], 1.0) if b[0] != "gain" else 5.0
-                           for b, s_ in zip(model.blocks, sc)]) / sc
+            ps = prior_std_x(self)[:n]
             self.f_reg = self.f_reg + 0.5 * ca.sumsqr((x - ca.DM(model.x0)) / ca.DM(ps))
         self.f = self.f_data + self.f_extra + self.f_reg
         self.g, self.lbg, self.ubg, self.g_names = build_constraints(model, self.settings, gauge)
@@ -219,12 +217,17 @@ class JointNLP:
             self.f_r = self.f_J = None
         if self.r_prior is not None:
             self.f_Jp = ca.Function("Jp", [xx], [ca.jacobian(self.r_prior, xx)])
-        My = self.out.y
-        self.f_M = ca.Function("M", [xx], [My])
-        jm = ca.jacobian(My, self.model.x)
-        if self.pem:
-            jm = ca.horzcat(jm, ca.DM.zeros(len(self.y), 1))
-        self.f_JM = ca.Function("JM", [xx], [jm])
+        self.f_M = ca.Function("M", [xx], [self.out.y])
+
+    @property
+    def f_JM(self):
+        """Jacobian of the model STIR on the support (built on first use)."""
+        if getattr(self, "_f_JM", None) is None:
+            jm = ca.jacobian(self.out.y, self.model.x)
+            if self.pem:
+                jm = ca.horzcat(jm, ca.DM.zeros(len(self.y), 1))
+            self._f_JM = ca.Function("JM", [self.xx], [jm])
+        return self._f_JM
 
     # ------------------------------------------------------------------ evaluation helpers
     def residuals(self, x) -> np.ndarray:
@@ -234,6 +237,19 @@ class JointNLP:
 
     def jacobian(self, x) -> np.ndarray:
         return np.asarray(ca.densify(self.f_J(x)))
+
+    def jacobian_sparse(self, x):
+        """The residuals' Jacobian at x as a scipy CSC matrix (never densified)."""
+        return _to_scipy(self.f_J(x))
+
+    def information(self, x) -> np.ndarray:
+        """J^T J (n_x, n_x) of the data residuals, computed sparsely."""
+        J = self.jacobian_sparse(x)
+        return np.asarray((J.T @ J).todense())
+
+    def prior_jacobian(self, x):
+        """Jacobian of the flatness prior's residuals (CSC), or None."""
+        return _to_scipy(self.f_Jp(x)) if self.r_prior is not None else None
 
     def model_values(self, x) -> np.ndarray:
         """The model STIR on the support at x."""
@@ -293,3 +309,12 @@ class JointNLP:
         rest = lam_f * obj_scale * (self.f_extra + self.f_reg) + ca.dot(lam_g, self.g)
         H = lam_f * obj_scale * Hd + ca.hessian(rest, xx)[0]
         return ca.Function("hess_gn", [xx, p, lam_f, lam_g], [ca.triu(H)])
+
+
+def _to_scipy(M):
+    """A CasADi DM (sparse) as a scipy CSC matrix."""
+    from scipy import sparse
+
+    sp = M.sparsity()
+    return sparse.csc_matrix((np.asarray(M.nonzeros(), float), np.asarray(sp.row(), int),
+                              np.asarray(sp.colind(), int)), shape=(sp.size1(), sp.size2()))

@@ -128,11 +128,12 @@ def _gain_start(view, X, pairs, q) -> float:
 
 def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
                bounces: int | None = None, fixed_visible: bool = False,
-               extended: bool | None = None) -> ModelPlan:
+               extended=None) -> ModelPlan:
     """Declare the joint model for the capture ``view``, the visible start ``geo``
     (``VisibleStart``) and the hidden starts ``hidden``. ``fixed_visible``: every visible number
-    stays at its start (the quick test of a hidden candidate); ``extended``: hidden discs
-    (default ``settings.search.extended``)."""
+    stays at its start (the quick test of a hidden candidate); ``extended``: which hidden
+    patches are discs whose area is an unknown — True/False for all, or a set of their indices
+    in ``hidden`` (default ``settings.search.extended``)."""
     extended = settings.search.extended if extended is None else extended
     ids = np.asarray(view.ids, int)
     M = len(ids)
@@ -243,20 +244,24 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     if Hn:
         model.set_albedo_product(hid)
         for j, h in enumerate(hidden):
-            model.params["albedo"].value[M + j] = h.albedo_area
-        model.set_unknown("albedo", hid, upper=1.0, scale=1e-3)
+            model.params["albedo"].value[M + j] = float(np.clip(h.albedo_area, 1e-9, 0.089))
+        # albedo x area of a hidden patch: at most (albedo 1) x (0.3 m)^2
+        model.set_unknown("albedo", hid, upper=0.09, scale=1e-3)
         eps = settings.constraints.hidden_eps
         if plane is not None:
             basis = np.stack([perpendicular(plane), np.cross(plane, perpendicular(plane))], axis=1)
             model.set_unknown("position", hid, lower=-eps, upper=eps, scale=eps / 5, basis=basis)
             model.set_tilt_axes(hid, plane)
-            model.set_unknown("tilt", hid)
-        else:
+            model.set_unknown("tilt", hid, lower=-np.radians(60), upper=np.radians(60))
+        else:  # the normal stays within 60 deg of facing the visible patches it was found by
             model.set_unknown("position", hid, lower=-eps, upper=eps, scale=eps / 5)
-            model.set_unknown("tilt", hid).set_unknown("tilt2", hid)
-        if extended:
-            model.set_extended(hid)
-            model.set_unknown("area", hid, lower=1e-6, upper=0.09, scale=1e-3)
+            model.set_unknown("tilt", hid, lower=-np.radians(60), upper=np.radians(60))
+            model.set_unknown("tilt2", hid, lower=-np.radians(60), upper=np.radians(60))
+        ext = hid if extended is True else (np.array([M + j for j in sorted(extended)], int)
+                                             if isinstance(extended, (set, list, tuple)) else np.zeros(0, int))
+        if len(ext):
+            model.set_extended(ext, rings=1, per_ring=6)
+            model.set_unknown("area", ext, lower=1e-6, upper=0.09, scale=1e-3)
     model.setup()
     given = {"position": np.concatenate([known_pos, np.zeros(Hn, bool)]),
              "normal": np.concatenate([given_n, np.zeros(Hn, bool)]),

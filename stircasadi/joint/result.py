@@ -90,8 +90,8 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
     if nlp.pem:
         Jq = np.hstack([Jq, np.zeros((len(q), 1))])
     if prior_info is None and getattr(nlp, "r_prior", None) is not None:
-        Jp = np.asarray(ca.densify(nlp.f_Jp(sol.x)))
-        prior_info = Jp.T @ Jp
+        Jp = nlp.prior_jacobian(sol.x)
+        prior_info = np.asarray((Jp.T @ Jp).todense())
     unc = fisher(nlp, sol.x, prior_info, frozen=getattr(nlp, "frozen", None))
     cov_x = unc["cov_x"]
     cov_q = Jq @ cov_x @ Jq.T

@@ -16,11 +16,13 @@ whitened residual's level, every std is multiplied by sqrt(chi2 / dof) when it e
 level (1 + 5 sqrt(2 / dof)); the caller refuses the estimate above ``chi2_max``. A noise-free
 twin (sigma at its floor) is rescaled the same way (the floor is not a noise level).
 
-Identifiability: the correlation-normalised information D^-1/2 (Z^T F Z) D^-1/2 is
-eigen-decomposed; its eigenvalues below ``null_tol`` span directions N the data do not see.
-Along them the covariance is the weak prior's, ``N (N^T P N)^-1 N^T`` with P = diag(1 / range^2)
-(``PRIOR_RANGE``: albedo 1, area 1 m^2, position 1 m, tilt pi/2, ...): a number that moves with
-such a direction gets an std of its plausible range, one that barely touches it keeps its own.
+Identifiability: the data's information is weighed against the weak prior's,
+P = diag(1 / range^2) (``PRIOR_RANGE``: albedo 1, area 1 m^2, position 1 m, tilt pi/2, ...), by the
+generalised eigenproblem (Z^T F Z) u = lam (Z^T P Z) u, solved on Jacobi-scaled matrices as
+F u = mu (F + P) u so strong and weak unknowns are judged alike. Directions with lam < 1 (the data
+know them less than the prior) are unseen; along them the covariance is the prior's, elsewhere
+the data's alone: a number that moves with an unseen direction gets an std of its plausible
+range, one that barely touches it keeps its own.
 A number whose std exceeds its threshold (``UncertaintySettings``) is not identifiable. Neglects: non-linearity beyond the linearisation at the
 optimum; an unknown on an active bound gets the unconstrained interval (flagged).
 """
@@ -30,7 +32,7 @@ import math
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import null_space
+from scipy.linalg import eigh, null_space
 
 from ..model.vertices import patch_quantities
 
@@ -72,10 +74,21 @@ def report_function(model):
 
 
 def prior_std_x(nlp) -> np.ndarray:
-    """The weak prior's std of each unknown of x (scaled units; ``PRIOR_RANGE``)."""
-    names = [b[0] for b in nlp.model.blocks] + (["ar1"] if nlp.pem else [])
-    sc = np.concatenate([nlp.model.x_scale, [1.0] * (nlp.n_x - nlp.model.n_x)])
-    return np.array([PRIOR_RANGE.get(nm, 1.0) if nm != "gain" else 5.0 for nm in names]) / sc
+    """The weak prior's std of each unknown of x (scaled units; ``PRIOR_RANGE``; albedo x area of
+    a hidden patch: 0.05 m^2)."""
+    m = nlp.model
+    names = [b[0] for b in m.blocks] + (["ar1"] if nlp.pem else [])
+    sc = np.concatenate([m.x_scale, [1.0] * (nlp.n_x - m.n_x)])
+    out = []
+    for (nm, k, _) in list(m.blocks) + ([("ar1", -1, 0)] if nlp.pem else []):
+        if nm == "gain":
+            out.append(5.0)
+        elif nm == "albedo" and k >= 0 and m.albedo_product[k]:
+            out.append(0.05)
+        else:
+            out.append(PRIOR_RANGE.get(nm, 1.0))
+    del names
+    return np.array(out) / sc
 
 
 def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
@@ -95,9 +108,8 @@ def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
         rr = (np.round(np.maximum(nlp.y * s, 0)) - mu) / np.sqrt(mu)
         chi2 = float(rr @ rr)
     else:
-        J = nlp.jacobian(x)
+        F = nlp.information(x)
         r = nlp.residuals(x)
-        F = J.T @ J
         chi2 = float(r @ r) + nlp.fold_const
     if prior_info is not None:
         F = F + prior_info
@@ -116,24 +128,28 @@ def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
     dof = max(len(nlp.y) - n_free, 1)
     Fz = Z.T @ F @ Z
     Fz = 0.5 * (Fz + Fz.T)
-    dg = np.sqrt(np.maximum(np.diag(Fz), 1e-300))
+    prior_std = prior_std_x(nlp)
+    Pz = Z.T @ (Z / prior_std[:, None] ** 2)
+    Pz = 0.5 * (Pz + Pz.T)
+    # data against the weak prior, direction by direction: F v = lam P v, solved as
+    # F v = mu (F + P) v (mu = lam / (1 + lam) in [0, 1]) on the Jacobi-scaled matrices, which
+    # stays well conditioned however strong and weak unknowns differ (scale-free)
+    dg = np.sqrt(np.maximum(np.diag(Fz) + np.diag(Pz), 1e-300))
     Fn = Fz / np.outer(dg, dg)
-    ev, V = np.linalg.eigh(Fn)
-    # a direction is unseen when its information is numerically nil, or below the weak prior's
-    # along it (correlated but well-determined unknowns have small normalised eigenvalues too)
-    Vx = Z @ (V / dg[:, None])
-    prior_info_dir = np.sum(Vx ** 2 / prior_std_x(nlp)[:, None] ** 2, axis=0)
-    null_mask = (ev < us.null_tol * max(ev.max(initial=0.0), 1e-300)) & (ev < 10.0 * prior_info_dir) \
-        | (ev < prior_info_dir)
+    Sn = Fn + Pz / np.outer(dg, dg)
+    mu, U = eigh(Fn, 0.5 * (Sn + Sn.T))  # U^T Sn U = I, U^T Fn U = diag(mu)
+    mu = np.clip(mu, 0.0, 1.0)
+    lam = mu / np.maximum(1.0 - mu, 1e-300)
+    # a direction is unseen when the data know it less than the weak prior does, or when its
+    # information is numerically nil and not clearly above the prior
+    null_mask = (lam < 1.0) | ((lam < 10.0) & (lam < us.null_tol * max(lam.max(initial=0.0), 1e-300)))
     good = ~null_mask
-    inv = (V[:, good] / ev[good]) @ V[:, good].T
-    cov_z = inv / np.outer(dg, dg)
+    Ug, Un = U[:, good], U[:, null_mask]
+    cov_z = (Ug / mu[good]) @ Ug.T  # data only where the data see
+    cov_z = cov_z + (Un / np.maximum(1.0 - mu[null_mask], 1e-300)) @ Un.T  # the prior fills the rest
+    cov_z = cov_z / np.outer(dg, dg)
     cov_x = Z @ cov_z @ Z.T
-    null = Z @ (V[:, null_mask] / dg[:, None]) if null_mask.any() else np.zeros((n, 0))
-    if null.shape[1]:  # the weak prior fills the directions the data do not see
-        prior_std = prior_std_x(nlp)
-        Pn = null.T @ (null / prior_std[:, None] ** 2)
-        cov_x = cov_x + null @ np.linalg.pinv(0.5 * (Pn + Pn.T)) @ null.T
+    null = Z @ (Un / dg[:, None]) if null_mask.any() else np.zeros((n, 0))
     sigma_used = nlp.sigma
     red = chi2 / dof
     inflation = 1.0
@@ -166,11 +182,10 @@ def degenerate(nlp, x, tol: float = 1e-8, max_freeze: int | None = None) -> list
     x = np.asarray(x, float)
     if nlp.poisson:
         return []
-    J = nlp.jacobian(x)
-    F = J.T @ J
+    F = nlp.information(x)
     if getattr(nlp, "r_prior", None) is not None:
-        Jp = np.asarray(ca.densify(nlp.f_Jp(x)))
-        F = F + Jp.T @ Jp
+        Jp = nlp.prior_jacobian(x)
+        F = F + np.asarray((Jp.T @ Jp).todense())
     n = nlp.n_x
     eq = np.flatnonzero(np.isfinite(nlp.lbg) & (nlp.lbg == nlp.ubg)) if len(nlp.lbg) else np.zeros(0, int)
     if len(eq):
