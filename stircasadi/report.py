@@ -235,10 +235,11 @@ def _groups(pats: list, with_truth: bool) -> list:
 
     groups = [("position (m)", ["x", "y", "z", "σ mm"], position)]
     if with_truth:
-        groups[0] = ("position (m)", ["x", "y", "z", "σ mm", "err mm", "err/σ"],
+        groups[0] = ("position (m)", ["x", "y", "z", "σ mm", "pos err mm", "err/σ"],
                      lambda p, r: position(p, r) + perr(p, r) + zc("position")(p, r))
-    groups.append(("normal", ["x", "y", "z", "σ °"] + (["err/σ"] if with_truth else []),
-                   (lambda p, r: normal(p, r) + zc("normal")(p, r)) if with_truth else normal))
+    if any(p.get("normal") is not None for p in pats):
+        groups.append(("normal", ["x", "y", "z", "σ °"] + (["err/σ"] if with_truth else []),
+                       (lambda p, r: normal(p, r) + zc("normal")(p, r)) if with_truth else normal))
     for q, title, f, spec in _SCALARS:
         if any(p.get(q) is not None for p in pats):
             c = scalar(q, f, spec)

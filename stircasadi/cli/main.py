@@ -65,13 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: extension modules skipped by the last ``build_parser`` (absent, or an optional dependency missing)
+UNAVAILABLE: dict = {}
+
+
 def _extend(sub, module: str) -> None:
-    """Register the sub-commands of ``module`` (skipped, with a debug note, when it is absent or
-    lacks an optional dependency)."""
+    """Register the sub-commands of ``module`` (skipped, noted in ``UNAVAILABLE`` and reported
+    by ``-v``, when it is absent or lacks an optional dependency)."""
     try:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as exc:
-        log.debug(f"commands of {module} not available: {exc}")
+        UNAVAILABLE[module] = str(exc)
         return
     mod.add_parsers(sub)
 
@@ -92,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     args._argv = list(sys.argv[1:] if argv is None else argv)
     verbose = int(getattr(args, "_verbose", 0) or 0)
     set_verbosity(-1 if getattr(args, "_quiet", False) else min(verbose, 1))
+    for module, why in UNAVAILABLE.items():
+        log.debug(f"commands of {module} not available: {why}")
     name = f"stircasadi {args.command}"
     try:
         return int(args.func(args) or 0)

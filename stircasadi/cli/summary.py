@@ -57,11 +57,11 @@ def summary_lines(d: dict, names: dict | None = None) -> list[str]:
     why: dict = {}
     for p in pats:
         for q in p.get("unidentifiable") or []:
-            reason = (p.get("notes") or {}).get(q, "")
-            why.setdefault((q, reason), []).append(label[p["id"]])
-    for (q, reason), who in list(why.items())[:4]:
-        out.append(_short(f"not identified: {q} of {', '.join(who[:8])}{' …' if len(who) > 8 else ''}"
-                          + (f" — {reason}" if reason else "")))
+            why.setdefault(q, []).append((label[p["id"]], (p.get("notes") or {}).get(q, "")))
+    for q, who in why.items():
+        first, reason = who[0]
+        out.append(_short(f"not identified: {q} of {', '.join(w for w, _ in who[:8])}"
+                          f"{' …' if len(who) > 8 else ''}" + (f" ({first}: {reason})" if reason else "")))
     checks = d.get("checks") or []
     if checks:
         bad = [c for c in checks if not c.get("passed")]

@@ -21,13 +21,20 @@ __all__ = ["render_pyvista"]
 @contextlib.contextmanager
 def _c_stderr_to_devnull():
     """Silence C-level writes to standard error (VTK's X-server warnings) for the block."""
-    try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stderr (notebook, captured)
+    import logging
+
+    from ..progress import get_logger
+
+    if get_logger().isEnabledFor(logging.DEBUG):  # -v: show what VTK says
         yield
         return
-    sys.stderr.flush()
-    saved = os.dup(fd)
+    fd = 2  # C libraries write to file descriptor 2 whatever Python's sys.stderr is
+    try:
+        sys.stderr.flush()
+        saved = os.dup(fd)
+    except (AttributeError, OSError, ValueError):  # no descriptor 2 at all
+        yield
+        return
     try:
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), fd)
@@ -50,7 +57,7 @@ def _arrows(pv, origins, vectors, thick: bool):
     for a, v in zip(origins, vectors):
         n = float(np.linalg.norm(v))
         if n > 0:
-            meshes.append(pv.Arrow(a, v / n, tip_length=0.25, tip_radius=0.09 if thick else 0.06,
+            meshes.append(pv.Arrow(start=a, direction=v / n, tip_length=0.25, tip_radius=0.09 if thick else 0.06,
                                    shaft_radius=0.03 if thick else 0.015, scale=n))
     return pv.merge(meshes) if meshes else pv.PolyData()
 
