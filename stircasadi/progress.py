@@ -51,7 +51,7 @@ def progress(iterable=None, total: int | None = None, desc: str = "", unit: str 
     """A tqdm progress bar (disabled when bars are off); use as an iterable wrapper or, with
     ``total``, as a context manager with ``.update(n)``. A bar appears only once its loop has run
     for ``delay`` seconds (default 1), so quick stages print nothing."""
-    from tqdm.auto import tqdm
+    from tqdm import tqdm  # text bars on stderr (tqdm.auto warns in kernels without ipywidgets)
 
     kw.setdefault("delay", 1.0)
     return tqdm(iterable, total=total, desc=desc, unit=unit, disable=not bars_enabled(),

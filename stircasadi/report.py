@@ -186,6 +186,15 @@ def _z(v) -> str:
     return "inf" if not math.isfinite(float(v)) else format(float(v), ".2f" if v < 10 else ".3g")
 
 
+def _has_std(row: dict) -> bool:
+    """Whether a ``compare`` row has a reported σ (finite, not all zero)."""
+    s = row.get("std")
+    if s is None:
+        return False
+    s = np.atleast_1d(np.asarray(s, float))
+    return bool(np.all(np.isfinite(s)) and np.any(s > 0))
+
+
 def _missing(p: dict, q: str) -> str:
     """Cell of a null number: n/i (the data cannot identify it) or - (not modelled)."""
     return "n/i" if q in (p.get("unidentifiable") or []) or q in (p.get("notes") or {}) else "-"
@@ -277,6 +286,8 @@ def table(est: dict, truth: dict | None = None, names: list | None = None,
     if with_truth:
         tidx = match(est, truth)
         for r in compare(est, truth):
+            if not _has_std(r):  # no σ reported: no err/σ to show (the error still is)
+                r = {**r, "z": None}
             rows_of.setdefault(r["id"], {})[r["quantity"]] = r
     groups = [("patch", ["id", "name", "seen"], None)] + _groups(pats, with_truth)
     cells = []
@@ -351,17 +362,22 @@ def _summary(pats, rows_of, with_truth) -> list[str]:
             label += {"position": " (σ mm)", "normal": " (σ °)"}.get(q, "")
         if with_truth:
             rs = [rows_of[p["id"]][q] for p in pats if q in rows_of.get(p["id"], {})
-                  and rows_of[p["id"]][q]["z"] is not None and not _given(p, q)]
+                  and rows_of[p["id"]][q]["error"] is not None and not _given(p, q)]
             if not rs:
                 continue
-            z = np.array([r["z"] for r in rs], float)
             e = np.array([np.abs(r["error"]) for r in rs], float)
-            worst = rs[int(np.argmax(np.where(np.isfinite(z), z, 1e300)))]["id"]
             scale, unit = {"position": (1e3, " mm"), "normal": (180 / math.pi, "°"),
                            **{s[0]: (s[2], "") for s in _SCALARS}}[q]
-            lines.append(f"{label}: {len(z)} estimated, rms error {np.sqrt(np.mean((e * scale) ** 2)):.3g}"
-                         f"{unit}; err/σ <= 1 for {np.mean(z <= 1):.0%}, <= 2 for {np.mean(z <= 2):.0%}, "
+            text = f"{label}: {len(e)} estimated, rms error {np.sqrt(np.mean((e * scale) ** 2)):.3g}{unit}"
+            zr = [r for r in rs if r["z"] is not None]
+            if zr:
+                z = np.array([r["z"] for r in zr], float)
+                worst = zr[int(np.argmax(np.where(np.isfinite(z), z, 1e300)))]["id"]
+                text += (f"; err/σ <= 1 for {np.mean(z <= 1):.0%}, <= 2 for {np.mean(z <= 2):.0%}, "
                          f"max {_z(float(np.max(z)))} (id {worst})")
+            if len(zr) < len(rs):
+                text += f"; {len(rs) - len(zr)} without a σ"
+            lines.append(text)
         else:
             n_ok = sum(p.get(q) is not None for p in pats)
             n_ni = sum(q in (p.get("unidentifiable") or []) for p in pats)

@@ -208,7 +208,7 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
     for ly in d.layers:
         est = ly.label.startswith("estimate")
         if len(ly.squares):  # truth: a wide pale halo; estimate: a sharp outline on top of it
-            pc = Poly3DCollection(ly.squares, linewidths=1.8 if est else 5.0)
+            pc = Poly3DCollection(ly.squares, linewidths=1.8 if est else (5.0 if len(ly.squares) <= 20 else 1.5))
             pc.set_facecolor(_rgba(ly.colour, 0.15 if est else ly.alpha))
             pc.set_edgecolor(_rgba(ly.colour, 1.0 if est else 0.6))
             ax.add_collection3d(pc)
@@ -218,7 +218,8 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
                       linewidth=1.8 if est else 1.0, arrow_length_ratio=0.25,
                       linestyle="-" if est else "--")
         if len(ly.markers):
-            ax.scatter(*ly.markers.T, marker=ly.marker, s=45, color=ly.colour, edgecolor="k", depthshade=False)
+            ax.scatter(*ly.markers.T, marker=ly.marker, s=45 if len(ly.markers) <= 20 else 14, color=ly.colour,
+                       edgecolor="k", linewidths=0.8 if len(ly.markers) <= 20 else 0.3, depthshade=False)
         handles.append(PatchArtist(facecolor=ly.colour, edgecolor=ly.colour, alpha=min(1.0, ly.alpha + 0.3),
                                    label=ly.label))
     if d.source is not None:
@@ -230,8 +231,11 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
         handles.append(Line2D([], [], marker="^", color="k", ls="", ms=8, label="camera"))
     if any(len(ly.markers) for ly in d.layers):
         handles.append(Line2D([], [], marker="D", color="0.4", mec="k", ls="", label="◆ size not identified"))
-    handles.append(Line2D([], [], color="0.3", lw=1.8, label="normal, estimated"))
-    handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="normal, true"))
+    kinds = {ly.label.split(":")[0] for ly in d.layers}
+    if "estimate" in kinds:
+        handles.append(Line2D([], [], color="0.3", lw=1.8, label="normal, estimated"))
+    if "truth" in kinds:
+        handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="normal, true"))
     for pos, text, colour in d.labels:
         ax.text(*pos, f" {text}", color=colour, fontsize=8)
     # scale bar along x at the lowest corner of the box
