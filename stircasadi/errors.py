@@ -88,3 +88,7 @@ class IlluminationError(StircasadiError, ValueError):
 class CodeError(StircasadiError, ValueError):
     """An illumination code or input/output record cannot be deconvolved (ill-conditioned code,
     period shorter than the response, mismatched record lengths)."""
+
+
+class ReconstructionError(StircasadiError, ValueError):
+    """A relay-wall (NLOS) reconstruction cannot run on the given capture or settings."""

@@ -39,10 +39,12 @@ class JointNLP:
     sigma : noise std (STIR units) and where it came from; None: from ``noise`` or a floor.
     noise : the capture's noise attributes (Poisson: ``scale``, ``background``).
     gauge : optional (G, x0): linear equality G (x - x0) = 0 fixing a free frame.
+    prior : optional (indices, means, stds) of x: Gaussian priors (e.g. a flat group's plane
+        normal), added to the cost and to the Fisher information.
     """
 
     def __init__(self, model, stir, settings: EstimateSettings | None = None, sigma=None,
-                 noise: dict | None = None, gauge=None):
+                 noise: dict | None = None, gauge=None, prior=None):
         if not getattr(model, "is_setup", False):
             raise ModelError("JointNLP needs a TransientModel after setup(); call model.setup().")
         self.settings = (settings or EstimateSettings()).validate()
@@ -120,6 +122,10 @@ class JointNLP:
         if cs.gloss_prior > 0 and gl:
             self.f_reg = self.f_reg + cs.gloss_prior * ca.sumsqr(x[gl] - ca.DM(model.x0[gl]))
         self.gloss_idx = gl
+        self.prior = prior
+        if prior is not None and len(prior[0]):
+            pi, pm, ps_ = (np.asarray(a) for a in prior)
+            self.f_reg = self.f_reg + 0.5 * ca.sumsqr((x[pi.tolist()] - ca.DM(pm)) / ca.DM(ps_))
         if cs.weak_prior:
             # the weak prior of uncertainty.PRIOR_RANGE: directions the data do not see stay at
             # the start instead of wandering (negligible where the data inform)

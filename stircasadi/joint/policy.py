@@ -51,6 +51,7 @@ class ModelPlan:
     given: dict
     gauge: tuple | None
     notes: list = field(default_factory=list)
+    prior: tuple | None = None        # (x indices, means, stds): declared priors in x units
 
 
 def flatland_plane(view, positions) -> np.ndarray | None:
@@ -103,6 +104,8 @@ class VisibleStart:
     area: np.ndarray | None = None
     pairs: np.ndarray | None = None   # (M, M) bool: the data saw a second bounce between them
     gain: float | None = None         # the STIR's unit (pulse energy x detector gain), if fitted
+    normal_prior_std: np.ndarray | None = None  # (M,) radians: the normal's prior (a flat group's
+    #                                             plane fit), NaN where none
 
 
 def _gain_start(view, X, pairs, q) -> float:
@@ -193,7 +196,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     if brdf == "phong":
         gl[:M] = True
     brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if gl[k] else Lambertian(float(alb0[k])) for k in range(M + Hn)]
-    K = bounces or (3 if Hn else 2)
+    K = max(bounces or 2, 3 if Hn else 2)
     from ..radiometry import facing_matrix
 
     vis_m = facing_matrix(Z, Nn)
@@ -201,7 +204,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         vis_m[:M, :M] = np.asarray(geo.pairs, bool) & ~np.eye(M, dtype=bool)
     model = TransientModel(Z, Nn, a0, view.grid, view.irf, rows, cols, brdfs, source=view.source,
                            camera=view.camera, legs_included=view.capture.legs_included, bounces=K,
-                           names=names, visibility=vis_m)
+                           names=names, visibility=vis_m, bounces_hidden=3)
     # ---- visible patches
     known_pos = np.isfinite(view.known_xyz).all(axis=1)
     ray = np.isfinite(view.rays).all(axis=1) & ~known_pos
@@ -259,6 +262,16 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     given = {"position": np.concatenate([known_pos, np.zeros(Hn, bool)]),
              "normal": np.concatenate([given_n, np.zeros(Hn, bool)]),
              "area": given_area.copy()}
+    prior = None
+    nps = getattr(geo, "normal_prior_std", None)
+    if nps is not None and not fixed_visible:  # flat groups: the plane fit is the normals' prior
+        idx, sd = [], []
+        for j, (name, k, c) in enumerate(model.blocks):
+            if name in ("tilt", "tilt2") and k < M and np.isfinite(nps[k]):
+                idx.append(j)
+                sd.append(max(float(nps[k]), np.radians(1.0)) / model.x_scale[j])
+        if idx:
+            prior = (np.array(idx), model.x0[np.array(idx)].copy(), np.array(sd))
     gauge = None
     if view.frame == "source-origin" and free3.any() and not fixed_visible:
         fp = model.params["position"].free
@@ -267,4 +280,4 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         if len(G):
             gauge = (G, model.x0.copy())
     vis = np.concatenate([np.ones(M, bool), np.zeros(Hn, bool)])
-    return ModelPlan(model, names, ids, vis, given, gauge, notes)
+    return ModelPlan(model, names, ids, vis, given, gauge, notes, prior)
