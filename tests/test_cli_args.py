@@ -49,6 +49,8 @@ ARGUMENT_CASES = [
     (["estimate", "{cap}", "--out", "{tmp}/e.json", "--brdf", "ward"], ["--brdf", "invalid choice"]),
     (["estimate", "{cap}", "--out", "{tmp}/e.json", "--areas", "{{bad"], ["--areas", "JSON object"]),
     (["estimate", "{cap}", "--out", "{tmp}/e.json", "--areas", '{{"0": -1}}'], ["--areas", "> 0 m^2"]),
+    (["estimate", "{cap}", "--out", "{tmp}/e.json", "--maps", "{tmp}/m"], ["--maps is for --method"]),
+    (["estimate", "{cap}", "--out", "{tmp}/e.json", "--method", "lct"], ["is for relay-wall scans"]),
     (["plot", "{tmp}/nothing.h5"], ["does not exist"]),
     (["run", "--renderer", "opengl"], ["--renderer", "invalid choice"]),
 ]

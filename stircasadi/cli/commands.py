@@ -11,6 +11,7 @@ import json
 import time
 from pathlib import Path
 
+from ..errors import StircasadiError
 from ..progress import get_logger
 from . import args as A
 
@@ -19,6 +20,8 @@ __all__ = ["add_parsers", "simulate_problem", "known_geometry", "script_inputs",
 
 log = get_logger(__name__)
 CAPTURE_SUFFIXES = (".h5", ".hdf5", ".hdf")
+#: relay-wall reconstructions of ``stircasadi.nlos`` (volumes; a fitted surface)
+NLOS_METHODS = ("lct", "fk", "bp", "surface")
 
 
 def script_inputs(problem: str | None) -> list:
@@ -97,6 +100,13 @@ def cmd_estimate(args) -> int:
     from .summary import print_summary
 
     out = check_output(args.out, inputs=[args.capture], what="estimate", suffixes=(".json",))
+    maps = None
+    if args.method in NLOS_METHODS:
+        maps = check_output(args.maps or out.with_name(out.stem + "_nlos"), inputs=[args.capture],
+                            what="maps", folder=True)
+    elif args.maps is not None:
+        raise StircasadiError(f"--maps is for --method {'|'.join(NLOS_METHODS)} (relay-wall volumes and "
+                              f"surfaces); got --method {args.method or 'automatic'}.")
     t0 = time.perf_counter()
     cap = Capture.read(args.capture)
     truth, cap.truth = cap.truth, None  # the estimator never sees a truth group
@@ -104,9 +114,11 @@ def cmd_estimate(args) -> int:
              + (f"STIR {' x '.join(map(str, cap.stir.shape))}" if cap.stir is not None
                 else f"{len(cap.traces)} paired traces"))
     res = estimate_capture(cap, hidden=args.hidden, brdf=args.brdf, areas=args.areas,
-                           flatland=True if args.flatland else None)
+                           flatland=True if args.flatland else None, method=args.method, out_dir=maps)
     d = res.to_json_dict()
     atomic_write_text(out, dumps(d))
+    if maps is not None:
+        print(f"volumes, maps, mesh and pictures in {maps}")
     print(table(d, truth))
     if truth is not None:
         print("(err/σ: against the capture's truth/ group, which the estimator did not read)")
@@ -159,6 +171,13 @@ def add_parsers(sub) -> list:
     e.add_argument("--areas", type=A.areas, default=None,
                    help="declared patch areas: a JSON object {id: m^2} or a .json file holding one "
                         "(default: estimated where the data identify them)")
+    e.add_argument("--method", choices=["joint", "relay", *NLOS_METHODS], default=None,
+                   help="estimator (default: 'joint' for a full STIR with its source and camera legs, "
+                        "'relay' for relay-wall scans); relay-wall scans also take 'lct', 'fk', 'bp' "
+                        "(volumes) or 'surface' (a fitted hidden surface)")
+    e.add_argument("--maps", type=Path, default=None,
+                   help="folder for the volumes, maps, mesh and pictures of --method lct|fk|bp|surface "
+                        "(default: OUT_nlos beside the estimate)")
     e.add_argument("--flatland", action="store_true",
                    help="declare that every patch lies in the plane of the source and the visible "
                         "patches (as in the paper's Fig. 12)")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import time
 
 from .. import __version__
 from ..errors import StircasadiError
@@ -88,12 +89,14 @@ def _exit_code(exc: SystemExit) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    t0 = time.perf_counter()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage errors (argparse printed them), --help, --version
         return _exit_code(exc)
     args._argv = list(sys.argv[1:] if argv is None else argv)
+    args._t0 = t0
     verbose = int(getattr(args, "_verbose", 0) or 0)
     set_verbosity(-1 if getattr(args, "_quiet", False) else min(verbose, 1))
     for module, why in UNAVAILABLE.items():

@@ -56,7 +56,9 @@ def model_from_estimate(d: dict, capture):
             else Sensor()
         r = render(belief, grid=capture.grid, sensor=sensor, settings=RenderSettings(with_std=False))
     except StircasadiError as exc:
-        log.warning(f"no model curve: the estimate cannot be rendered ({exc})")
+        lines = str(exc).splitlines()
+        log.warning("no model curve on the profiles: " + " ".join(x.strip() for x in lines[:2])
+                    + (f" (and {len(lines) - 2} more)" if len(lines) > 2 else ""))
         return None
     ri = {int(i): k for k, i in enumerate(r.ill_ids)}
     ro = {int(j): k for k, j in enumerate(r.obs_ids)}

@@ -9,7 +9,8 @@ notebooks. The traces are chosen from the data alone (``informative_traces``):
 * in trace (i, j) with i != j the earliest family is the second bounce i -> j, in trace (i, i)
   the first bounce; every later family carries a third (or higher) bounce;
 * the strongest second bounces and the strongest later returns (by matched-filter SNR) are the
-  traces drawn, so a scene whose fixed first pairs hold no second bounce still shows one.
+  traces drawn (one of a trace and its reciprocal), so a scene whose fixed first pairs hold no
+  second bounce still shows one.
 
 ``profiles_figure`` draws each chosen trace on a symmetric-log axis (linear within 3 noise std,
 so noise and a 1e-6 return both show) with the model (the joint fit's ``model.simulate`` or a
@@ -107,9 +108,10 @@ def informative_traces(capture, sigma: float | None = None, n_second: int = 2, n
         for z, r, f in sorted(cands, reverse=True):
             if len([o for o in out if o.why == why]) >= n:
                 break
-            if r in used:
+            key = frozenset(int(v) for v in pairs[r])   # (i, j) and its reciprocal (j, i): one
+            if key in used:
                 continue
-            used.add(r)
+            used.add(key)
             out.append(Trace(int(pairs[r][0]), int(pairs[r][1]), r, why, fam[r][0], fam[r][1], f))
     take(second, n_second, "second bounce")
     take(later, n_later, "later return")
@@ -194,7 +196,8 @@ def profiles_figure(capture, model=None, sigma: float | None = None, names: dict
         else:
             ax.set_xlabel("optical path length (m)")
     fig.suptitle(title or "most informative traces", fontsize=11)
-    fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.5 / fig.get_figheight(), bottom=0.07)
+    fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.5 / fig.get_figheight(),
+                        bottom=0.55 / fig.get_figheight())
     return fig
 
 

@@ -232,7 +232,7 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
     if any(len(ly.markers) for ly in d.layers):
         handles.append(Line2D([], [], marker="D", color="0.4", mec="k", ls="", label="◆ size not identified"))
     kinds = {ly.label.split(":")[0] for ly in d.layers}
-    if "estimate" in kinds:
+    if any(len(ly.arrow_from) for ly in d.layers if ly.label.startswith("estimate")):
         handles.append(Line2D([], [], color="0.3", lw=1.8, label="normal, estimated"))
     if "truth" in kinds:
         handles.append(Line2D([], [], color="0.3", lw=1.0, ls="--", label="normal, true"))
@@ -250,7 +250,7 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
     ax.set_xlim(ctr[0] - half, ctr[0] + half)
     ax.set_ylim(ctr[1] - half, ctr[1] + half)
     ax.set_zlim(ctr[2] - half, ctr[2] + half)
-    ax.set_box_aspect((1, 1, 1), zoom=1.15)
+    ax.set_box_aspect((1, 1, 1), zoom=1.05)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
@@ -258,7 +258,7 @@ def scene_figure(estimate: dict | None = None, truth: dict | None = None, names:
     ax.view_init(elev=elev, azim=azim, vertical_axis="y")
     ax.set_title(d.title + ("\n" + "; ".join(d.notes) if d.notes else ""), fontsize=10)
     fig.legend(handles=handles, loc="center left", bbox_to_anchor=(0.76, 0.5), fontsize=8, framealpha=0.9)
-    fig.subplots_adjust(left=0.0, right=0.78, top=0.93, bottom=0.02)
+    fig.subplots_adjust(left=0.0, right=0.78, top=0.93, bottom=0.05)
     return fig
 
 
