@@ -13,6 +13,7 @@ its truth group. The folder and every file are checked before the simulation sta
 from __future__ import annotations
 
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -20,6 +21,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import OutputError, StircasadiError
+from ..problem import DEFAULT_PROBLEM
 from ..progress import get_logger
 from . import args as A
 from .commands import describe_simulation, known_geometry, script_inputs, simulate_problem
@@ -168,10 +170,10 @@ def cmd_run(args) -> int:
 def add_parsers(sub) -> list:
     r = sub.add_parser("run", formatter_class=A.Formatter,
                        help="simulate a problem, estimate it blind, print a table against the truth",
-                       description=__doc__.split("\n\n", 2)[2] if __doc__ else None)
-    r.add_argument("problem", nargs="?", default=None, type=A.problem,
-                   help="problem name (see 'stircasadi problems') or path to a problem script "
-                        "(default: hidden_corner)")
+                       description=textwrap.fill(" ".join(__doc__.split("\n\n", 2)[2].replace("``", "")
+                                                           .split()), 90) if __doc__ else None)
+    r.add_argument("problem", nargs="?", default=DEFAULT_PROBLEM, type=A.problem,
+                   help="problem name (see 'stircasadi problems') or path to a problem script")
     r.add_argument("--out", default="runs/latest",
                    help="folder for capture.h5, estimate.json, report.json, scene.png, profiles.png "
                         "(created if missing; files in it are replaced)")
