@@ -152,7 +152,7 @@ def profiles_figure(capture, model=None, sigma: float | None = None, names: dict
     n = len(sel)
     ncol = 2 if n > 1 else 1
     nrow = int(np.ceil(n / ncol))
-    fig = new_figure(fig, (6.2 * ncol, (4.6 if Mt is not None else 3.4) * nrow + 0.6))
+    fig = new_figure(fig, (6.2 * ncol, (4.6 if Mt is not None else 3.4) * nrow + 0.8))
     outer = fig.add_gridspec(nrow, ncol, hspace=0.32, wspace=0.25)
     nm = names or {}
     h = _kernel(capture)
@@ -196,7 +196,7 @@ def profiles_figure(capture, model=None, sigma: float | None = None, names: dict
         else:
             ax.set_xlabel("optical path length (m)")
     fig.suptitle(title or "most informative traces", fontsize=11)
-    fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.5 / fig.get_figheight(),
+    fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.75 / fig.get_figheight(),
                         bottom=0.55 / fig.get_figheight())
     return fig
 
