@@ -111,7 +111,7 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     labels, gn, gstd = flat_groups(X, pairs, sig)
     cam = geo.camera_xyz if geo.camera_xyz is not None else view.camera
     n0, _ = initial_normals(X, pairs, cam, labels=labels)
-    start = VisibleStart(X, ps, n0, pairs=pairs, normal_prior_std=np.where(labels >= 0, gstd, np.nan))
+    start = VisibleStart(X, ps, n0, pairs=pairs, flat_labels=labels)
     t1 = time.perf_counter()
     fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf)
     t_fit = time.perf_counter() - t1

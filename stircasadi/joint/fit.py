@@ -163,7 +163,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
 
     def make_nlp(pl):
         nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge,
-                        prior=pl.prior)
+                        flat=pl.flat)
         return nlp_
 
     nlp = make_nlp(plan)
@@ -194,7 +194,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     th = plan.model.theta(sol.x[:plan.model.n_x])
     vis_start = VisibleStart(th["position"][:M], start.position_std, th["normal"][:M],
                              th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"],
-                             start.normal_prior_std)
+                             start.flat_labels)
     cur_nlp, cur_x = nlp, sol.x
     plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
     want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \

@@ -51,7 +51,7 @@ class ModelPlan:
     given: dict
     gauge: tuple | None
     notes: list = field(default_factory=list)
-    prior: tuple | None = None        # (x indices, means, stds): declared priors in x units
+    flat: np.ndarray | None = None    # (P, 2) patch pairs of one flat group (the flatness prior)
 
 
 def flatland_plane(view, positions) -> np.ndarray | None:
@@ -104,8 +104,7 @@ class VisibleStart:
     area: np.ndarray | None = None
     pairs: np.ndarray | None = None   # (M, M) bool: the data saw a second bounce between them
     gain: float | None = None         # the STIR's unit (pulse energy x detector gain), if fitted
-    normal_prior_std: np.ndarray | None = None  # (M,) radians: the normal's prior (a flat group's
-    #                                             plane fit), NaN where none
+    flat_labels: np.ndarray | None = None  # (M,) flat group of each patch (-1: none)
 
 
 def _gain_start(view, X, pairs, q) -> float:
@@ -262,16 +261,19 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     given = {"position": np.concatenate([known_pos, np.zeros(Hn, bool)]),
              "normal": np.concatenate([given_n, np.zeros(Hn, bool)]),
              "area": given_area.copy()}
-    prior = None
-    nps = getattr(geo, "normal_prior_std", None)
-    if nps is not None and not fixed_visible:  # flat groups: the plane fit is the normals' prior
-        idx, sd = [], []
-        for j, (name, k, c) in enumerate(model.blocks):
-            if name in ("tilt", "tilt2") and k < M and np.isfinite(nps[k]):
-                idx.append(j)
-                sd.append(max(float(nps[k]), np.radians(1.0)) / model.x_scale[j])
-        if idx:
-            prior = (np.array(idx), model.x0[np.array(idx)].copy(), np.array(sd))
+    flat = None
+    lab = getattr(geo, "flat_labels", None)
+    if lab is not None and not fixed_visible:  # flatness: each normal perpendicular to its group
+        pairs_f = []
+        for g_ in np.unique(lab[lab >= 0]):
+            idx = np.flatnonzero(lab == g_)
+            for k in idx:
+                if given_n[k]:
+                    continue
+                d = np.linalg.norm(X[idx] - X[k], axis=1)
+                for j in idx[np.argsort(d)[1:5]]:
+                    pairs_f.append((k, j))
+        flat = np.array(pairs_f, int).reshape(-1, 2) if pairs_f else None
     gauge = None
     if view.frame == "source-origin" and free3.any() and not fixed_visible:
         fp = model.params["position"].free
@@ -280,4 +282,4 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         if len(G):
             gauge = (G, model.x0.copy())
     vis = np.concatenate([np.ones(M, bool), np.zeros(Hn, bool)])
-    return ModelPlan(model, names, ids, vis, given, gauge, notes, prior)
+    return ModelPlan(model, names, ids, vis, given, gauge, notes, flat)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import casadi as ca
 import numpy as np
 
 from .uncertainty import QUANTITIES, fisher, report_function
@@ -88,10 +89,9 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
     Jq = np.asarray(Jq)
     if nlp.pem:
         Jq = np.hstack([Jq, np.zeros((len(q), 1))])
-    if prior_info is None and getattr(nlp, "prior", None) is not None and len(nlp.prior[0]):
-        prior_info = np.zeros((nlp.n_x, nlp.n_x))
-        pi, _, ps_ = nlp.prior
-        prior_info[pi, pi] = 1.0 / np.asarray(ps_) ** 2
+    if prior_info is None and getattr(nlp, "r_prior", None) is not None:
+        Jp = np.asarray(ca.densify(nlp.f_Jp(sol.x)))
+        prior_info = Jp.T @ Jp
     unc = fisher(nlp, sol.x, prior_info, frozen=getattr(nlp, "frozen", None))
     cov_x = unc["cov_x"]
     cov_q = Jq @ cov_x @ Jq.T
