@@ -74,7 +74,7 @@ def test_estimate_unreliable_exits_3_and_still_writes(tmp_path, capsys, monkeypa
     from stircasadi import pipeline
 
     cap = tmp_path / "three.h5"
-    assert main(["-q", "simulate", "three_patch", "--out", str(cap), "--noise", "none"]) == 0
+    assert main(["-q", "simulate", "three_patch", "--out", str(cap)]) == 0
     real = pipeline.estimate_capture
 
     def failing_checks(*a, **k):

@@ -17,9 +17,9 @@ from stircasadi.problems import three_patch
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-    """A small noise-free capture (three_patch) written by the command itself."""
+    """A small capture (three_patch, its sensor's noise) written by the command itself."""
     path = tmp_path_factory.mktemp("cap") / "three.h5"
-    assert main(["-q", "simulate", "three_patch", "--out", str(path), "--noise", "none"]) == 0
+    assert main(["-q", "simulate", "three_patch", "--out", str(path)]) == 0
     return path
 
 
