@@ -13,13 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
+from stircasadi.datasets import data_dir
 from stircasadi.geometry import distances as dm
 from stircasadi.geometry import embedding as em
 from stircasadi.geometry import onsets as on
 from stircasadi.timegrid import TimeGrid
 
 OUT = Path(__file__).resolve().parent / "results" / "geometry.json"
-DATA = Path("/work/shared/data")
+DATA = data_dir()  # $STIRCASADI_DATA, default ../shared/data beside the repository
 
 
 def onset_vs_crb(n_trials=400):

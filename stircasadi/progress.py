@@ -31,14 +31,16 @@ def set_verbosity(level: int = 0) -> None:
     log = logging.getLogger(_ROOT)
     lvl = logging.WARNING if level < 0 else (logging.INFO if level == 0 else logging.DEBUG)
     log.setLevel(lvl)
-    if not any(getattr(h, "_stircasadi", False) for h in log.handlers):
+    h = next((h for h in log.handlers if getattr(h, "_stircasadi", False)), None)
+    if h is None:
         h = logging.StreamHandler(sys.stderr)
-        h.setFormatter(logging.Formatter("%(message)s" if level <= 0 else
-                                         "%(asctime)s %(name)s %(levelname)s: %(message)s"))
         h._stircasadi = True
         log.addHandler(h)
         log.propagate = False
-    _state["bars"] = level >= 0
+    h.stream = sys.stderr  # the current standard error (it may have been redirected since)
+    h.setFormatter(logging.Formatter("%(message)s" if level <= 0 else
+                                     "%(asctime)s %(name)s %(levelname)s: %(message)s"))
+    _state["bars"] = level >= 0 and (sys.stderr.isatty() or os.environ.get("STIRCASADI_PROGRESS", "") == "1")
 
 
 def bars_enabled() -> bool:
@@ -47,8 +49,10 @@ def bars_enabled() -> bool:
 
 def progress(iterable=None, total: int | None = None, desc: str = "", unit: str = "it", **kw):
     """A tqdm progress bar (disabled when bars are off); use as an iterable wrapper or, with
-    ``total``, as a context manager with ``.update(n)``."""
-    from tqdm.auto import tqdm
+    ``total``, as a context manager with ``.update(n)``. A bar appears only once its loop has run
+    for ``delay`` seconds (default 1), so quick stages print nothing."""
+    from tqdm import tqdm  # text bars on stderr (tqdm.auto warns in kernels without ipywidgets)
 
+    kw.setdefault("delay", 1.0)
     return tqdm(iterable, total=total, desc=desc, unit=unit, disable=not bars_enabled(),
                 leave=False, file=sys.stderr, dynamic_ncols=True, **kw)

@@ -132,10 +132,9 @@ def test_unknown_and_missing(tmp_path):
         import_file(q)
 
 
-def test_detects_real_mat_files():
-    import pathlib
-    d = pathlib.Path("/work/shared/data")
-    if not d.exists():
+def test_detects_real_mat_files(shared_data):
+    d = shared_data
+    if not (d / "otoole2018_confocal/data_s_u.mat").exists():
         pytest.skip("shared real data not mounted")
     assert detect_format(d / "otoole2018_confocal/data_s_u.mat") == "stanford-lct"
     assert detect_format(d / "fk2019_statue_confocal/sub_Sig.mat") == "ccsocr"

@@ -1,5 +1,4 @@
 """Real relay-wall data: importers and the hidden-object depth of the Stanford 40 cm charts."""
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -7,13 +6,12 @@ import scipy.io as sio
 
 from stircasadi.acquisition import nlos_mat as nm
 from stircasadi.constants import C
+from stircasadi.datasets import data_dir
 from stircasadi.errors import ImportFormatError
 from stircasadi.geometry import estimate_geometry
 from stircasadi.geometry import relay
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-if not DATA.exists():
-    DATA = Path("/work/shared/data")
+DATA = data_dir()
 STANFORD = DATA / "otoole2018_confocal"
 
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import GeometryError
+from ..progress import progress
 from ..irf import GaussianIRF, IdealIRF, Template, estimate_samples, from_samples
 
 __all__ = ["GaussTemplate", "make_template", "estimate_irf", "fit_onsets", "detect_pulses",
@@ -496,7 +497,8 @@ def second_onsets(capture, tmpl=None, **kw):
     # chunks of ~4M samples: every row is fitted on its own, so chunking changes nothing but
     # the size of the temporaries (a 1 GB STIR at M = 500 otherwise makes several more)
     chunk = max(1, _CHUNK_SAMPLES // max(Y.shape[1], 1))
-    parts = [_first_family(Y[s0:s0 + chunk], capture, tmpl, **kw) for s0 in range(0, Y.shape[0], chunk)]
+    parts = [_first_family(Y[s0:s0 + chunk], capture, tmpl, **kw)
+             for s0 in progress(range(0, Y.shape[0], chunk), desc="second onsets", unit="chunk")]
     tau, std, snr = (np.concatenate(x) for x in zip(*parts))
     sh = (len(ill), len(obs))
     return ill, obs, tau.reshape(sh), std.reshape(sh), snr.reshape(sh)
@@ -534,7 +536,7 @@ def third_onsets(capture, tmpl=None, after: np.ndarray | None = None, max_pulses
     # all traces at once, in chunks of ~4M samples to bound the temporaries
     chunk = max(1, _CHUNK_SAMPLES // max(Y.shape[1], 1))
     pulses_all: list[list[dict]] = []
-    for s0 in range(0, Y.shape[0], chunk):
+    for s0 in progress(range(0, Y.shape[0], chunk), desc="third onsets", unit="chunk"):
         pulses_all += detect_pulses_batch(Y[s0:s0 + chunk], capture.grid, tmpl,
                                           max_pulses=max_pulses + 1, poisson=poisson, k_sigma=k_sigma)
     out = {}

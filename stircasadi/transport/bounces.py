@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..progress import progress
 from ..timegrid import TimeGrid
 from .deposit import deposit
 from .system import TransportSystem
@@ -53,7 +54,7 @@ def path_sum(system: TransportSystem, grid: TimeGrid, irf, bounces: int,
     O = _by_col(system.O, system.n_nodes)
     stir = np.zeros((n_ill, n_obs, nb))
     parts = [np.zeros((n_ill, n_obs, nb)) for _ in range(bounces)] if per_bounce else None
-    for p in range(n_ill):
+    for p in progress(range(n_ill), desc="path sums", unit="pulse"):
         nodes, amp, tau = _expand(np.array([p]), np.ones(1), np.zeros(1), S)
         for n in range(1, bounces + 1):
             if len(nodes) == 0:

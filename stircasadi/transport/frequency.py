@@ -35,6 +35,7 @@ import scipy.linalg as sla
 from scipy.sparse.linalg import spsolve
 
 from ..errors import TransportError
+from ..progress import progress
 from ..timegrid import TimeGrid
 from .deposit import bin_integer_samples, kernel_support
 from .system import TransportSystem
@@ -224,7 +225,7 @@ def frequency_solve(system: TransportSystem, grid: TimeGrid, irf, bounces: int |
         spec_all = np.lib.format.open_memmap(os.path.join(tmp, "spectrum.npy"), mode="w+",
                                              dtype=complex, shape=(n_rows, ni, no))
         _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows, out=spec_all)
-        for c0 in range(0, ni, block):
+        for c0 in progress(range(0, ni, block), desc="pulse blocks", unit="block"):
             c1 = min(ni, c0 + block)
             out[c0:c1] = _to_time(np.array(spec_all[:, c0:c1]), grid, irf, N, P, m_max, G, integer)
         del spec_all
@@ -238,7 +239,9 @@ def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows=None, 
     per_freq = 16 * (3 * nu * nu + 2 * nu * ni + no * nu + no * ni)
     fchunk = max(1, int(chunk_bytes // max(per_freq, 1)))
     diag = np.arange(nu)
+    bar = progress(total=len(omega), desc="frequencies", unit="freq")
     for s in range(0, len(omega), fchunk):
+        bar.update(min(fchunk, len(omega) - s))
         om = omega[s:s + fchunk]
         Sw, Tw = Sb.at(om), Tb.at(om)
         if bounces is None:
@@ -256,6 +259,7 @@ def _spectrum(Sb, Tb, Ob, omega, bounces, nu, ni, no, chunk_bytes, n_rows=None, 
                 V = Tw @ V
                 Y += Ob.apply_left(om, V)
         spec[s:s + len(om)] = np.transpose(Y, (0, 2, 1))
+    bar.close()
     return spec
 
 

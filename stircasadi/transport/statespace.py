@@ -25,6 +25,7 @@ import numpy as np
 from scipy import sparse
 
 from ..errors import TransportError
+from ..progress import progress
 from ..timegrid import TimeGrid
 from .deposit import bin_integer_samples
 from .system import TransportSystem
@@ -103,7 +104,7 @@ def simulate_state_space(ss: StateSpace, system: TransportSystem, grid: TimeGrid
     samples = np.zeros((n_steps, no, ni))
     X = np.zeros((ss.n_states, ni))
     A, Bm, C = ss.A, ss.B.toarray(), ss.C
-    for t in range(n_steps):
+    for t in progress(range(n_steps), desc="state space", unit="step"):
         samples[t] = C @ X
         X = A @ X
         if t == 0:
