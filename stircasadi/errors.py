@@ -72,3 +72,8 @@ class PhysicsWarning(UserWarning):
 
 class AcquisitionSettingsError(StircasadiError, ValueError):
     """An acquisition setting (port, baud rate, timeout, shots...) is outside its allowed range."""
+
+
+class StudyError(StircasadiError, ValueError):
+    """A study spec is malformed (unknown factor, bad value, empty design) or its output folder
+    cannot hold the results."""
