@@ -231,6 +231,12 @@ def build_parser() -> argparse.ArgumentParser:
         add_parsers = None
     if add_parsers is not None:
         add_parsers(sub)
+    try:
+        from .studies.cli import add_parsers as add_study_parsers
+    except ImportError:
+        add_study_parsers = None
+    if add_study_parsers is not None:
+        add_study_parsers(sub)
     return p
 
 
