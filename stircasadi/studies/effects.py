@@ -16,7 +16,8 @@ bounces    ``bounces = needed + 1``                ``bounces = needed - 1`` (>= 
 occlusion  the scene's occluders, or a far box     no occluders (every facing pair linked)
            behind the camera (rays cast, none hit)
 glossy     every Lambertian patch as Phong with    every Phong patch as Lambertian with
-           specular 0 (glossy nodes, same light)   its diffuse albedo (the lobe dropped)
+           specular 1e-12 (glossy nodes, the       its diffuse albedo (the lobe dropped)
+           light changes by ~1e-12)
 irf        the sensor's IRF, or 210 ps Gaussian    the ideal (Dirac) response
 noise      the sensor's noise, or 1e-4 of peak     no noise
 =========  ======================================  =======================================
@@ -41,6 +42,10 @@ from ..sensor import GaussianNoise
 from ..transport import needed_bounces
 
 __all__ = ["force", "stir_change"]
+
+#: the specular reflectance that makes a Lambertian patch glossy for the simulator (which skips
+#: lobes of specular 0) while changing its light by a negligible amount
+_TINY_LOBE = 1e-12
 
 
 def _rebuild(scene: Scene, patches=None, occluders="keep") -> Scene:
@@ -80,9 +85,10 @@ def force(scene: Scene, sensor, effect: str, state: str):
     if effect == "glossy":
         if on:
             P = [p if isinstance(p.brdf, Phong) or not isinstance(p.brdf, Lambertian) else
-                 dataclasses.replace(p, brdf=Phong(albedo=p.brdf.albedo, specular=0.0, exponent=1.0))
+                 dataclasses.replace(p, brdf=Phong(albedo=min(p.brdf.albedo, 1 - _TINY_LOBE),
+                                                   specular=_TINY_LOBE, exponent=1.0))
                  for p in scene.patches]
-            return _rebuild(scene, P), sensor, {}, "Lambertian patches as Phong with specular 0"
+            return _rebuild(scene, P), sensor, {}, f"Lambertian patches as Phong with specular {_TINY_LOBE:g}"
         P = [dataclasses.replace(p, brdf=Lambertian(p.brdf.albedo)) if isinstance(p.brdf, Phong) else p
              for p in scene.patches]
         return _rebuild(scene, P), sensor, {}, "Phong lobes dropped"

@@ -101,8 +101,14 @@ def local_cluster(n_workers: int):
         os.environ.setdefault(k, v)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": dict(BLAS_ENV),
                           "distributed.worker.daemon": False, "logging.distributed": "error"}):
-        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None, env=dict(BLAS_ENV))
+        try:
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None, env=dict(BLAS_ENV))
+        except RuntimeError as exc:  # "Nanny failed to start": the workers could not spawn
+            raise StudyError(
+                f"The local Dask workers did not start ({exc}). A script that calls run_study must "
+                "guard it with `if __name__ == \"__main__\":` (workers are spawned processes that "
+                "import the script); or run serially (workers=0, --serial).") from exc
         client = Client(cluster)
         try:
             yield client

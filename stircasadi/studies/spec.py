@@ -162,6 +162,7 @@ class Study:
             raise StudyError(f"Study {self.name!r} has no cells.")
         for c in cells:
             _check_cell(c)
+        _check_sources({c.get("problem") for c in cells} - {None}, {c.get("scene") for c in cells} - {None})
         return self
 
     # ------------------------------------------------------------------ design
@@ -228,6 +229,23 @@ def _check_cell(c: dict) -> None:
         raise StudyError(f"noise_model={model!r} cannot be combined with {noise_keys[0]}; {_short(c)}.")
     if ("effect" in c) != ("effect_state" in c):
         raise StudyError(f"effect and effect_state go together; {_short(c)}.")
+
+
+def _check_sources(problems: set, scenes: set) -> None:
+    """Unknown problems and hard cases are refused before any cell runs."""
+    from ..errors import StircasadiError
+    from ..problem import load_problem
+    from .hardcases import HARD_CASES
+
+    for p in sorted(problems):
+        try:
+            load_problem(p)
+        except StircasadiError as exc:
+            raise StudyError(f"problem {p!r}: {exc}") from exc
+    for s in sorted(scenes):
+        if s.startswith("hard:") and s[5:] not in HARD_CASES:
+            raise StudyError(f"Unknown hard case {s!r}; the cases are "
+                             f"{', '.join('hard:' + k for k in HARD_CASES)}.")
 
 
 def _short(c: dict) -> str:

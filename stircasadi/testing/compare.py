@@ -128,7 +128,7 @@ class Comparison:
         out = {
             "n_numbers": len(self.rows), "n_null": self.n_null,
             "n_nonfinite": sum(r["nonfinite"] for r in self.rows),
-            "n_z": int(zs.size), "n_no_std": sum(r["std_missing"] and not r["given"] for r in self.rows),
+            "n_z": int(zs.size), "n_no_std": sum(r["std_missing"] and not r["given"] and r["kind"] != "norm" for r in self.rows),
             "max_abs_z": float(np.max(zs)) if zs.size else float("nan"),
             "frac_z_le1": float(np.mean(zs <= 1)) if zs.size else float("nan"),
             "frac_z_le2": float(np.mean(zs <= 2)) if zs.size else float("nan"),
