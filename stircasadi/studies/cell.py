@@ -240,6 +240,8 @@ def _estimate_measures(res_json: dict, info: dict) -> dict:
     checks = res_json.get("checks") or []
     flags = sorted({str(f) for st in items if isinstance(st, dict) for f in (st.get("flags") or [])})
     iters = [st.get("iterations") for st in items if isinstance(st, dict) and isinstance(st.get("iterations"), int)]
+    solver_iters = [st.get("iterations") for st in items if isinstance(st, dict) and st.get("solver")
+                    and isinstance(st.get("iterations"), int)]
     return {"success": bool(res_json.get("success", False)), "verdict": res_json.get("verdict"),
             "frame": res_json.get("frame"),
             "reasons": "; ".join(map(str, res_json.get("reasons") or [])),
@@ -247,10 +249,23 @@ def _estimate_measures(res_json: dict, info: dict) -> dict:
                                                                 if not c.get("passed", True)),
             "flags": ",".join(flags), "n_ambiguities": len(res_json.get("ambiguities") or []),
             "iterations": int(sum(iters)) if iters else 0,
+            "solver_iterations": int(sum(solver_iters)) if solver_iters else 0,
             "stage_time_s": float(sum(st.get("wall_time_s") or 0.0 for st in items if isinstance(st, dict))),
             "n_patches_est": len(res_json.get("patches") or []),
             "n_hidden_est": sum(1 for p in res_json.get("patches") or [] if not p.get("visible", True)),
             **info}
+
+
+def _describe_worst(comp) -> str:
+    """The unflagged number furthest from the truth in sigma, in words."""
+    w = comp.worst(1, unflagged_only=True)
+    if not w:
+        return ""
+    r = w[0]
+    std = "no std" if r["std_missing"] else f"std {r['std']:.2g}"
+    name = r["quantity"] + (f".{r['component']}" if r["component"] else "")
+    return (f"{'hidden' if not r['visible'] else 'visible'} patch {r['patch_id']} {name}: err "
+            f"{r['err']:+.3g}, {std}, |err|/std {r['z']:.3g}")
 
 
 def hard_verdict(status: str, m: dict, k: float = 4.0) -> str:
@@ -303,6 +318,7 @@ def run_cell(params: dict, sigma_limit: float = 4.0, keep_estimate: bool = False
                 comp = compare(js, cap)
                 m.update(comp.summary(k=sigma_limit))
                 m["finite"] = comp.finite
+                m["worst_unflagged"] = _describe_worst(comp)
                 rec["numbers"] = comp.rows
                 if keep_estimate:
                     rec["estimate"] = js

@@ -28,6 +28,11 @@ from pathlib import Path
 import numpy as np
 from matplotlib.ticker import NullFormatter
 
+from ..progress import get_logger
+from .results import as_text
+
+log = get_logger(__name__)
+
 __all__ = ["draw_all", "pareto_front", "plot_accuracy_vs_time", "plot_accuracy_vs_noise",
            "plot_coverage", "plot_effects"]
 
@@ -92,10 +97,11 @@ def plot_accuracy_vs_time(res, acc: str = "err_position_m", tcol: str = "estimat
         if fac is None:
             ax.scatter(pts["_t"], pts["_acc"], s=18)
         else:
-            levels = list(dict.fromkeys(pts[fac].astype(str)))
+            text = as_text(pts[fac])
+            levels = list(dict.fromkeys(text))
             cmap = plt.get_cmap("tab10" if len(levels) <= 10 else "viridis")
             for i, lev in enumerate(levels):
-                sel = pts[fac].astype(str) == lev
+                sel = text == lev
                 ax.scatter(pts["_t"][sel], pts["_acc"][sel], s=18, color=cmap(i / max(len(levels) - 1, 1)
                                                                             if len(levels) > 10 else i),
                            label=lev[:24])
@@ -141,9 +147,11 @@ def plot_accuracy_vs_noise(res, noise_col: str = "noise", quantities=("position"
             lab = key if isinstance(key, str) else ", ".join(map(str, np.atleast_1d(key)))
             line, = ax.plot(rms_err.index, rms_err.values, "o-", label=f"{lab}: RMS error")
             ax.plot(rms_std.index, rms_std.values, "--", color=line.get_color(), label=f"{lab}: reported std (CRB)")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel(f"{noise_col} (relative to the peak)" if noise_col == "noise" else noise_col)
+        if noise_col == "noise":
+            ax.set_xscale("log")
+        if ax.has_data():
+            ax.set_yscale("log")
+        ax.set_xlabel("noise std relative to the peak" if noise_col == "noise" else "peak SNR (dB)")
         ax.set_ylabel(f"{q} error ({'m' if q == 'position' else '1'})")
         ax.set_title(f"{q}: error vs reported std")
         ax.grid(alpha=0.3, which="both")
@@ -246,7 +254,13 @@ def draw_all(res, folder) -> list[Path]:
     acc_cols = figs.get("accuracy") or ["err_position_m", "err_albedo"]
     tcol = figs.get("time", "estimate_s")
 
-    def save(fig, name):
+    def save(draw, name, *args):
+        try:
+            fig = draw(res, *args)
+        except (ValueError, KeyError, TypeError) as exc:  # a picture must not lose the tables
+            log.warning(f"picture {name} not drawn: {type(exc).__name__}: {exc}")
+            plt.close("all")
+            return
         p = folder / name
         fig.savefig(p, dpi=110)
         plt.close(fig)
@@ -256,12 +270,13 @@ def draw_all(res, folder) -> list[Path]:
     if design and tcol in c.columns:
         for acc in acc_cols:
             if acc in c.columns and np.isfinite(np.asarray(c[acc], float)).any():
-                save(plot_accuracy_vs_time(res, acc, tcol), f"accuracy_vs_time_{acc}.png")
+                save(plot_accuracy_vs_time, f"accuracy_vs_time_{acc}.png", acc, tcol)
+    ok = c[c["status"] == "ok"]
     for ncol in ("noise", "snr_db"):
-        if ncol in design and len(res.numbers):
-            save(plot_accuracy_vs_noise(res, ncol), f"accuracy_vs_{ncol}.png")
+        if ncol in design and len(res.numbers) and ok[ncol].notna().sum() > 1:
+            save(plot_accuracy_vs_noise, f"accuracy_vs_{ncol}.png", ncol)
     if len(res.numbers) and "z" in res.numbers.columns:
-        save(plot_coverage(res), "coverage.png")
+        save(plot_coverage, "coverage.png")
     if "effect" in c.columns and "effect_state" in c.columns and "sim_s_auto" in c.columns:
-        save(plot_effects(res), "effects.png")
+        save(plot_effects, "effects.png")
     return made

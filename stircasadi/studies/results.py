@@ -30,7 +30,7 @@ from ..errors import StudyError
 from ..io import atomic_write_text
 from .cache import to_jsonable
 
-__all__ = ["StudyResults", "write_results", "load_results", "design_columns", "markdown_table"]
+__all__ = ["StudyResults", "write_results", "load_results", "design_columns", "markdown_table", "as_text"]
 
 _RUN_COLS = ("repetition", "seed")
 
@@ -84,6 +84,11 @@ def _flat(v):
     return v
 
 
+def as_text(series):
+    """A column as text labels, missing values as "-" (pandas' string dtype keeps NaN)."""
+    return series.map(lambda v: "-" if v is None or (isinstance(v, float) and v != v) else str(v))
+
+
 def design_columns(cells, study: dict) -> list[str]:
     """Factor columns that vary across the cells (besides repetition and seed)."""
     keys = set()
@@ -91,7 +96,7 @@ def design_columns(cells, study: dict) -> list[str]:
         keys |= set((study.get(part) or {}))
     for c in study.get("cases") or []:
         keys |= set(c)
-    cols = [k for k in sorted(keys) if k in cells.columns and cells[k].astype(str).nunique() > 1]
+    cols = [k for k in sorted(keys) if k in cells.columns and as_text(cells[k]).nunique() > 1]
     return cols
 
 
@@ -247,6 +252,11 @@ def aggregate(res: StudyResults):
         agg["success"] = g["success"].apply(lambda s: int((s == True).sum()))  # noqa: E712
     for m in cols:
         agg[m] = g[m].apply(lambda s: pd.to_numeric(s, errors="coerce").median())
+    if "hard_verdict" in c.columns:
+        agg["verdicts"] = g["hard_verdict"].apply(
+            lambda s: ", ".join(f"{k} {v}" for k, v in s.value_counts().items()))
+    if "worst_unflagged" in c.columns:
+        agg["worst (first cell)"] = g["worst_unflagged"].first()
     return agg.reset_index()
 
 
@@ -257,7 +267,8 @@ def summary_markdown(res: StudyResults) -> str:
              f"{p['machine']['node']} ({p['machine']['cpu_count']} CPUs); {p['run'].get('mode')}; "
              f"wall {p['run'].get('wall_s', float('nan')):.1f} s; {len(res.cells)} cells", "",
              "Medians over repetitions per design point:", "", markdown_table(aggregate(res))]
-    if "hard_verdict" in res.cells.columns and "effect" not in res.cells.columns:
+    if "hard_verdict" in res.cells.columns:
         vc = res.cells["hard_verdict"].value_counts()
-        lines += ["", "Verdicts: " + ", ".join(f"{k} {v}" for k, v in vc.items())]
+        lines += ["", "Verdicts (blind_score's rule, MISSED: a hidden patch not placed, unflagged): "
+                  + ", ".join(f"{k} {v}" for k, v in vc.items())]
     return "\n".join(lines) + "\n"

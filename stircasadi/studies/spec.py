@@ -242,10 +242,15 @@ def _check_sources(problems: set, scenes: set) -> None:
             load_problem(p)
         except StircasadiError as exc:
             raise StudyError(f"problem {p!r}: {exc}") from exc
+    from .cell import _import_callable
+
     for s in sorted(scenes):
-        if s.startswith("hard:") and s[5:] not in HARD_CASES:
-            raise StudyError(f"Unknown hard case {s!r}; the cases are "
-                             f"{', '.join('hard:' + k for k in HARD_CASES)}.")
+        if s.startswith("hard:"):
+            if s[5:] not in HARD_CASES:
+                raise StudyError(f"Unknown hard case {s!r}; the cases are "
+                                 f"{', '.join('hard:' + k for k in HARD_CASES)}.")
+        else:
+            _import_callable(s)
 
 
 def _short(c: dict) -> str:
