@@ -179,15 +179,12 @@ def _simulate(scene, grid, sensor, params, m: dict):
     kw["bounces"] = None if b == "auto" else b
     effect, state = params.get("effect", "none"), params.get("effect_state", "auto")
     ref = None
-    if effect != "none" and state != "auto":
-        t = time.perf_counter()
-        ref = simulate(scene, grid, sensor=sensor, **kw)
-        m["sim_s_auto"] = time.perf_counter() - t
+    compared = effect != "none" and state != "auto"
+    if compared:
+        ref, m["sim_s_auto"] = _timed(lambda: simulate(scene, grid, sensor=sensor, **kw))
         scene, sensor, extra, m["effect_note"] = force(scene, sensor, effect, state)
         kw.update(extra)
-    t = time.perf_counter()
-    tr = simulate(scene, grid, sensor=sensor, **kw)
-    m["simulate_s"] = time.perf_counter() - t
+    tr, m["simulate_s"] = _timed(lambda: simulate(scene, grid, sensor=sensor, **kw), repeat=compared)
     md = tr.metadata
     m.update({"sim_method": md.get("method"), "sim_bounces": str(md.get("bounces")),
               "sim_occlusion": str(md.get("occlusion")), "sim_glossy_terms": bool(md.get("glossy_terms")),
@@ -220,6 +217,20 @@ def _simulate(scene, grid, sensor, params, m: dict):
     m["noise_model"] = str(cap.noise.get("model"))
     m["noise_sigma"] = float(cap.noise.get("sigma", float("nan")))
     return cap
+
+
+def _timed(fn, repeat: bool = True, short: float = 0.05):
+    """(result, seconds); a run shorter than ``short`` s is repeated twice more and the fastest
+    time kept (timer and cache noise dominate a millisecond simulation)."""
+    t = time.perf_counter()
+    out = fn()
+    best = time.perf_counter() - t
+    if repeat and best < short:
+        for _ in range(2):
+            t = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - t)
+    return out, best
 
 
 def _drop_direct(tr, ids):

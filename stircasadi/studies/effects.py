@@ -12,7 +12,8 @@ The switches (``force(scene, sensor, effect, state)``):
 =========  ======================================  =======================================
 effect     on                                      off
 =========  ======================================  =======================================
-bounces    ``bounces = needed + 1``                ``bounces = needed - 1`` (>= 1)
+bounces    ``bounces = needed + 1`` (light after   ``bounces = needed - 1`` (>= 1)
+           the grid's end is cut, as a sensor's)
 occlusion  the scene's occluders, or a far box     no occluders (every facing pair linked)
            behind the camera (rays cast, none hit)
 glossy     every Lambertian patch as Phong with    every Phong patch as Lambertian with
@@ -75,7 +76,10 @@ def force(scene: Scene, sensor, effect: str, state: str):
     if effect == "bounces":
         k = needed_bounces(scene)
         k = k + 1 if on else max(k - 1, 1)
-        return scene, sensor, {"bounces": k}, f"bounces {k} (scene needs {needed_bounces(scene)})"
+        # the extra order may arrive after the grid's end: the grid records what it can, as a
+        # sensor would (the automatic order always fits the problem's grid)
+        kw = {"bounces": k, "allow_truncation": True} if on else {"bounces": k}
+        return scene, sensor, kw, f"bounces {k} (scene needs {needed_bounces(scene)})"
     if effect == "occlusion":
         if on:
             if scene.needs_occlusion:

@@ -150,12 +150,14 @@ def provenance(study, cells, run_info: dict) -> dict:
     """Package, machine, date and seeds of a run."""
     from .. import __version__
 
+    from importlib import metadata
+
     versions = {}
-    for mod in ("numpy", "scipy", "casadi", "dask", "distributed", "pandas", "pyarrow"):
+    for dist in ("numpy", "scipy", "casadi", "dask", "distributed", "pandas", "pyarrow"):
         try:
-            versions[mod] = __import__(mod).__version__
-        except Exception:  # absent or odd: recorded as missing
-            versions[mod] = None
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            versions[dist] = None
     try:
         import psutil
 
