@@ -12,7 +12,8 @@ What the pictures show
   one panel per varied factor coloured by its level; the Pareto front (no other point is both
   faster and more accurate) is the black line over all points.
 * **Accuracy vs noise**: the RMS error over repetitions and the RMS of the std the estimator
-  reports (its Cramér-Rao bound at the estimate). An efficient, honest estimator puts the two
+  reports (its Cramér-Rao bound at the estimate), visible and hidden patches apart (a missed
+  hidden patch has no number: its point is absent). An efficient, honest estimator puts the two
   curves on top of each other; error above the bound means the bars are too small.
 * **Coverage**: the fraction of |err|/std <= k against k, beside the Gaussian promise
   erf(k/sqrt 2) and its binomial band (alpha = 1e-3) for the number of values; numbers reported
@@ -141,12 +142,20 @@ def plot_accuracy_vs_noise(res, noise_col: str = "noise", quantities=("position"
         mq[noise_col] = pd.to_numeric(mq[noise_col], errors="coerce")
         keys = mq.groupby(groups, dropna=False, sort=False) if groups else [("all", mq)]
         for i, (key, sub) in enumerate(keys):
-            g = sub.groupby(noise_col)
-            rms_err = g["err"].apply(lambda e: float(np.sqrt(np.mean(np.square(e)))))
-            rms_std = g["std"].apply(lambda s: float(np.sqrt(np.nanmean(np.square(s)))) if s.notna().any() else np.nan)
             lab = key if isinstance(key, str) else ", ".join(map(str, np.atleast_1d(key)))
-            line, = ax.plot(rms_err.index, rms_err.values, "o-", label=f"{lab}: RMS error")
-            ax.plot(rms_std.index, rms_std.values, "--", color=line.get_color(), label=f"{lab}: reported std (CRB)")
+            color = f"C{i % 10}"
+            for vis, marker, kind in ((True, "o", "visible"), (False, "s", "hidden")):
+                part = sub[sub["visible"] == vis]
+                if not len(part):
+                    continue
+                g = part.groupby(noise_col)
+                rms_err = g["err"].apply(lambda e: float(np.sqrt(np.mean(np.square(e)))))
+                rms_std = g["std"].apply(lambda s: float(np.sqrt(np.nanmean(np.square(s))))
+                                         if s.notna().any() else np.nan)
+                ax.plot(rms_err.index, rms_err.values, marker=marker, ls="-", color=color,
+                        label=f"{lab}, {kind}: RMS error")
+                ax.plot(rms_std.index, rms_std.values, marker=marker, ls="--", mfc="none", color=color,
+                        label=f"{lab}, {kind}: reported std")
         if noise_col == "noise":
             ax.set_xscale("log")
         if ax.has_data():
