@@ -18,56 +18,39 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from pathlib import Path
 
 from ..errors import StudyError
 from ..io import atomic_write_text
 
-__all__ = ["cell_key", "CellCache", "ENGINE_VERSION", "to_jsonable"]
+__all__ = ["cell_key", "CellCache", "ENGINE_VERSION", "dumps", "json_default"]
 
 #: bump when a record's meaning changes (new measures, other defaults)
 ENGINE_VERSION = 1
 
 
-def to_jsonable(o):
-    """Plain JSON types from NumPy scalars/arrays; non-finite floats kept as strings
-    ``"nan"``/``"inf"``/``"-inf"`` so the file stays strict JSON."""
+def json_default(o):
+    """``json.dumps(default=...)`` for NumPy scalars and arrays. Non-finite floats are written as
+    ``NaN``/``Infinity`` (Python's JSON reads them back; an |err|/std of inf must stay inf)."""
     import numpy as np
 
-    if isinstance(o, dict):
-        return {str(k): to_jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [to_jsonable(v) for v in o]
     if isinstance(o, np.ndarray):
-        return to_jsonable(o.tolist())
-    if isinstance(o, (np.bool_,)):
-        return bool(o)
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        f = float(o)
-        return f if math.isfinite(f) else ("nan" if math.isnan(f) else ("inf" if f > 0 else "-inf"))
-    return o
+        return o.tolist()
+    if isinstance(o, (np.bool_, np.integer, np.floating)):
+        return o.item()
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
-def from_jsonable(o):
-    """Inverse of ``to_jsonable`` for the non-finite strings."""
-    if isinstance(o, dict):
-        return {k: from_jsonable(v) for k, v in o.items()}
-    if isinstance(o, list):
-        return [from_jsonable(v) for v in o]
-    if o in ("nan", "inf", "-inf"):
-        return float(o)
-    return o
+def dumps(o, **kw) -> str:
+    return json.dumps(o, default=json_default, **kw)
 
 
 def cell_key(params: dict) -> str:
     """The cache key of a cell's parameters under this package version."""
     from .. import __version__
 
-    doc = json.dumps({"params": to_jsonable(params), "version": __version__, "engine": ENGINE_VERSION},
-                     sort_keys=True, separators=(",", ":"))
+    doc = dumps({"params": params, "version": __version__, "engine": ENGINE_VERSION},
+                sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(doc.encode()).hexdigest()[:16]
 
 
@@ -93,12 +76,12 @@ class CellCache:
         if not p.is_file():
             return None
         try:
-            return from_jsonable(json.loads(p.read_text()))
+            return json.loads(p.read_text())
         except (OSError, json.JSONDecodeError):
             return None   # unreadable: treated as not done, recomputed
 
     def put(self, key: str, record: dict) -> None:
-        atomic_write_text(self.path(key), json.dumps(to_jsonable(record), separators=(",", ":")))
+        atomic_write_text(self.path(key), dumps(record, separators=(",", ":")))
 
     def drop(self, key: str) -> None:
         self.path(key).unlink(missing_ok=True)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from ..errors import StudyError
 from ..io import atomic_write_text
-from .cache import to_jsonable
+from .cache import dumps
 
 __all__ = ["StudyResults", "write_results", "load_results", "design_columns", "markdown_table", "as_text"]
 
@@ -80,7 +80,7 @@ def _has_pyarrow() -> bool:
 
 def _flat(v):
     if isinstance(v, (dict, list, tuple)):
-        return json.dumps(to_jsonable(v), sort_keys=True)
+        return dumps(v, sort_keys=True)
     return v
 
 
@@ -178,8 +178,8 @@ def write_results(study, out, keys, cache, run_info: dict, figures: bool = True)
     out = Path(out)
     cells, numbers = _tables(keys, cache)
     prov = provenance(study, cells, run_info)
-    atomic_write_text(out / "provenance.json", json.dumps(to_jsonable(prov), indent=2))
-    atomic_write_text(out / "study.json", json.dumps(to_jsonable(study.to_dict()), indent=2))
+    atomic_write_text(out / "provenance.json", dumps(prov, indent=2))
+    atomic_write_text(out / "study.json", dumps(study.to_dict(), indent=2))
     for name in ("cells", "numbers"):
         for suffix in (".parquet", ".csv"):
             (out / f"{name}{suffix}").unlink(missing_ok=True)
