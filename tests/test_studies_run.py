@@ -76,6 +76,8 @@ def test_interrupted_study_resumes_without_recomputing(tmp_path, counted):
     partial = load_results(out)                       # partial tables were written
     assert len(partial.cells) == 2 and partial.provenance["run"]["interrupted"]
 
+    tables = run_study(TINY, out, settings=RunSettings(workers=0, figures=False, cached_only=True))
+    assert len(counted) == 2 and len(tables.cells) == 2 and tables.provenance["run"]["n_missing"] == n - 2
     done_first = {json.dumps(p, sort_keys=True) for p in counted}
     res = run_study(TINY, out, settings=RunSettings(workers=0, figures=False))
     assert len(counted) == n                          # only the n - 2 others ran
@@ -190,3 +192,26 @@ def test_cli_runs_a_spec_file_and_reports_failures(tmp_path, capsys):
     assert main(["study", "three_patch_typo", "--out", str(tmp_path / "x")]) == 2
     (tmp_path / "afile").write_text("")
     assert main(["study", str(spec), "--out", str(tmp_path / "afile"), "--serial", "-q"]) == 2
+
+
+def test_sigterm_stops_the_cli_and_keeps_finished_cells(tmp_path):
+    """A killed study (SIGTERM) exits 130 with its finished cells cached; rerun resumes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    spec = tmp_path / "s.toml"
+    spec.write_text('name = "term"\nrepetitions = 40\n[base]\nproblem = "hidden_corner"\n')
+    out = tmp_path / "o"
+    exe = [sys.executable, "-m", "stircasadi.cli", "study", str(spec), "--out", str(out), "--serial", "-q"]
+    proc = subprocess.Popen(exe, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(list((out / "cells").glob("*.json"))) < 1:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    n_done = len(list((out / "cells").glob("*.json")))
+    assert proc.returncode == 130 and "interrupted" in err
+    assert 1 <= n_done < 40
+    assert load_results(out).provenance["run"]["interrupted"]

@@ -5,6 +5,10 @@
     stircasadi study --list          the built-in studies and their sizes
     stircasadi study --factors       every factor a spec may vary
     stircasadi study --report DIR    redraw the pictures and summary of a results folder
+    stircasadi study SPEC --out DIR --cached-only   tables of the finished cells, computing nothing
+
+Ctrl-C or a SIGTERM stops a study: finished cells stay in DIR/cells, partial tables are written,
+and the same command resumes it.
 
 Exit status: 0 when every cell ran (whatever the estimator concluded), 1 when some cells
 failed or crashed (their errors are in the table), 2 for a bad spec or output folder,
@@ -12,6 +16,7 @@ failed or crashed (their errors are in the table), 2 for a bad spec or output fo
 """
 from __future__ import annotations
 
+import signal
 import sys
 
 from ..errors import StircasadiError, StudyError
@@ -34,11 +39,17 @@ def add_parsers(sub) -> None:
     s.add_argument("--fresh", action="store_true", help="ignore the cache, recompute every cell")
     s.add_argument("--keep-estimates", action="store_true", help="keep each estimate.json in its record")
     s.add_argument("--no-figures", action="store_true", help="tables only")
+    s.add_argument("--cached-only", action="store_true",
+                   help="compute nothing: tables and pictures of the cells already in DIR/cells")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("--list", action="store_true", help="list the built-in studies")
     s.add_argument("--factors", action="store_true", help="describe every factor")
     s.add_argument("--report", metavar="DIR", default=None, help="redraw pictures and summary of DIR")
     s.set_defaults(func=cmd_study)
+
+
+def _terminate(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _list() -> int:
@@ -82,7 +93,9 @@ def cmd_study(args) -> int:
     set_verbosity(-1 if args.quiet else 0)
     settings = RunSettings(scheduler=args.scheduler, workers=0 if args.serial else args.workers,
                            retry_failed=args.retry_failed, fresh=args.fresh,
-                           keep_estimates=args.keep_estimates, figures=not args.no_figures)
+                           keep_estimates=args.keep_estimates, figures=not args.no_figures,
+                           cached_only=args.cached_only)
+    signal.signal(signal.SIGTERM, _terminate)  # a kill stops the study like Ctrl-C: cache kept
     try:
         res = run_study(args.spec, args.out, size=args.size, settings=settings)
     except KeyboardInterrupt:

@@ -58,7 +58,8 @@ class StudyResults:
         return (f"study {self.study.get('name')}: {len(c)} cells ("
                 + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"); "
                 f"{p.get('run', {}).get('n_computed', 0)} computed, {p.get('run', {}).get('n_cached', 0)} "
-                f"cached, wall {p.get('run', {}).get('wall_s', float('nan')):.1f} s ({p.get('run', {}).get('mode')}); "
+                f"cached, " + (f"{p['run']['n_missing']} not run, " if p.get("run", {}).get("n_missing") else "")
+                + f"wall {p.get('run', {}).get('wall_s', float('nan')):.1f} s ({p.get('run', {}).get('mode')}); "
                 f"results in {self.out}")
 
 

@@ -61,6 +61,9 @@ class RunSettings:
     """Keep each cell's estimate.json dict in its record."""
     figures: bool = True
     """Draw the pictures at the end."""
+    cached_only: bool = False
+    """Compute nothing: write the tables and pictures of the cells already cached (the others
+    are counted as missing in the provenance)."""
 
     def validate(self) -> "RunSettings":
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 0):
@@ -112,9 +115,9 @@ def local_cluster(n_workers: int):
         client = Client(cluster)
         try:
             yield client
-        finally:
-            client.close()
-            cluster.close()
+        finally:  # short timeouts: after an interruption the workers may be busy in C code
+            client.close(timeout=10)
+            cluster.close(timeout=20)
 
 
 @contextlib.contextmanager
@@ -201,7 +204,11 @@ def run_study(spec, out, size: str | None = None, settings: RunSettings | None =
     log.info(f"study {study.name}: {len(unique)} cells, {cached} cached, {len(todo)} to run ({mode})")
     tally = _Tally(len(unique), cached, cached_failed, study.name)
     run_info = {"mode": mode, "n_cells": len(unique), "n_cached": cached, "n_computed": 0,
-                "started": started.isoformat(), "interrupted": False}
+                "started": started.isoformat(), "interrupted": False, "n_missing": 0}
+    if settings.cached_only:
+        run_info["mode"] = "cached only"
+        run_info["n_missing"] = len(todo)
+        todo = []
 
     def finish(key, rec, running):
         cache.put(key, rec)
