@@ -9,8 +9,8 @@ When to use
 What the pictures show
 ----------------------
 * **Accuracy vs time**: one point per design point (median time, RMS error over repetitions),
-  one panel per varied factor coloured by its level; the Pareto front (no other point is both
-  faster and more accurate) is the black line over all points.
+  one panel per varied factor coloured by its level; the Pareto front (no other point of the
+  same scene is both faster and more accurate) is the black line, one per problem / scene.
 * **Accuracy vs noise**: the RMS error over repetitions and the RMS of the std the estimator
   reports (its Cramér-Rao bound at the estimate), visible and hidden patches apart (a missed
   hidden patch has no number: its point is absent). An efficient, honest estimator puts the two
@@ -91,9 +91,17 @@ def plot_accuracy_vs_time(res, acc: str = "err_position_m", tcol: str = "estimat
     cols = min(n, 3)
     rows = int(math.ceil(n / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(5.0 * cols, 4.0 * rows), squeeze=False)
-    front = pareto_front(pts["_t"], pts["_acc"])
-    fx, fy = pts["_t"][front].to_numpy(), pts["_acc"][front].to_numpy()
-    o = np.argsort(fx)
+    # one Pareto front per scene: accuracies of different scenes are not comparable
+    scene_cols = [c for c in ("problem", "scene", "label") if c in design]
+    scene_key = (pts[scene_cols].apply(lambda r: " / ".join(map(str, r)), axis=1) if scene_cols
+                 else pts["_t"].map(lambda _: "all"))
+    fronts = []
+    for key in dict.fromkeys(scene_key):
+        sub = pts[scene_key == key]
+        f = pareto_front(sub["_t"], sub["_acc"])
+        fx, fy = sub["_t"][f].to_numpy(), sub["_acc"][f].to_numpy()
+        o = np.argsort(fx)
+        fronts.append((fx[o], fy[o]))
     for ax, fac in zip(axes.flat, design or [None]):
         if fac is None:
             ax.scatter(pts["_t"], pts["_acc"], s=18)
@@ -108,8 +116,9 @@ def plot_accuracy_vs_time(res, acc: str = "err_position_m", tcol: str = "estimat
                            label=lev[:24])
             ax.set_title(f"by {fac}")
             ax.legend(fontsize=7, loc="best")
-        ax.plot(fx[o], fy[o], "k-", lw=1.2, drawstyle="steps-post", label="_Pareto")
-        ax.scatter(fx, fy, s=60, facecolors="none", edgecolors="k", lw=1.0)
+        for fx, fy in fronts:
+            ax.plot(fx, fy, "k-", lw=1.2, drawstyle="steps-post", label="_Pareto")
+            ax.scatter(fx, fy, s=60, facecolors="none", edgecolors="k", lw=1.0)
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())
         if (pts["_acc"] > 0).any():
@@ -119,8 +128,8 @@ def plot_accuracy_vs_time(res, acc: str = "err_position_m", tcol: str = "estimat
         ax.grid(alpha=0.3, which="both")
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
-    fig.suptitle(f"{res.study.get('name')}: {_LABELS.get(acc, acc)} vs time "
-                 f"(Pareto front: black, circled)", fontsize=10)
+    fig.suptitle(f"{res.study.get('name')}: {_LABELS.get(acc, acc)} vs time, median over repetitions "
+                 f"(Pareto front per scene: black, circled)", fontsize=10)
     fig.tight_layout()
     return fig
 
