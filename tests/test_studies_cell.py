@@ -194,3 +194,15 @@ def test_a_twin_cell_measures_what_compare_measures():
     for k in ("n_z", "max_abs_z", "err_position_m_hidden", "err_albedo", "n_missed"):
         assert rec["measures"][k] == s[k] or (s[k] != s[k] and rec["measures"][k] != rec["measures"][k])
     assert rec["measures"]["n_hidden_true"] == 2 and rec["measures"]["sim_bounces"] == "3"
+
+
+def test_settings_honoured_is_read_from_the_stages():
+    from stircasadi.studies.adapter import _honoured
+
+    ipopt = [{"solver": "ipopt", "iterations": 3}]
+    assert _honoured({"solver": "lm-ad"}, ipopt) is False
+    assert _honoured({"solver": "ipopt-gauss-newton"}, ipopt) is None          # Hessian not told
+    assert _honoured({"solver": "ipopt-gauss-newton"}, [{"solver": "ipopt", "hessian": "gauss-newton"}])
+    assert _honoured({"solver": "ipopt-lbfgs"}, [{"solver": "ipopt", "hessian": "exact"}]) is False
+    assert _honoured({"solver": "lm-fd"}, [{"solver": "lm", "jacobian": "fd"}])
+    assert _honoured({}, ipopt) is None

@@ -25,9 +25,9 @@ A cell without solver factors passes ``settings=None`` (the estimator's defaults
 
 What it neglects
 ----------------
-Whether the estimator honours the settings is read back from the result (the solver each stage
-reports): ``settings_honoured`` is True or False where the result names its solver, None where
-it cannot tell (a Hessian choice is not reported).
+Whether the estimator honours the settings is read back from the result: ``settings_honoured``
+is False when a stage names another solver family, True when the stages also name the
+requested Hessian (IPOPT) or Jacobian (LM), None where the result does not tell.
 """
 from __future__ import annotations
 
@@ -63,10 +63,26 @@ def estimator_settings(params: dict):
     return s.validate()
 
 
-def _reported_solvers(result_json: dict) -> list[str]:
+def _solver_stages(result_json: dict) -> list[dict]:
     stages = result_json.get("stages") or {}
     items = stages.values() if isinstance(stages, dict) else stages
-    return sorted({str(st["solver"]) for st in items if isinstance(st, dict) and st.get("solver")})
+    return [st for st in items if isinstance(st, dict) and st.get("solver")]
+
+
+def _honoured(params: dict, stages: list[dict]):
+    """True / False where the result's stages say which solver (and Hessian / Jacobian) ran;
+    None where they do not tell."""
+    if not params.get("solver") or not stages:
+        return None
+    family, _, detail = params["solver"].partition("-")
+    if not all(str(st["solver"]).startswith(family) for st in stages):
+        return False
+    key = "hessian" if family == "ipopt" else "jacobian"
+    want = _HESSIAN.get(params["solver"], detail)
+    told = [st.get(key) for st in stages if st.get(key) is not None]
+    if not told:
+        return None
+    return all(str(t) == want for t in told)
 
 
 def run_estimate(capture, params: dict):
@@ -83,9 +99,6 @@ def run_estimate(capture, params: dict):
         areas = None if capture.truth is None else capture.truth.get("areas")
     result = estimate_capture(capture, hidden=None if hidden == "auto" else int(hidden),
                               brdf=params.get("brdf", "lambertian"), areas=areas, settings=settings)
-    reported = _reported_solvers(result.to_json_dict())
-    honoured = None
-    if params.get("solver") and reported:
-        family = params["solver"].split("-", 1)[0]
-        honoured = family in reported
-    return result, {"solver_reported": ",".join(reported), "settings_honoured": honoured}
+    stages = _solver_stages(result.to_json_dict())
+    reported = sorted({str(st["solver"]) for st in stages})
+    return result, {"solver_reported": ",".join(reported), "settings_honoured": _honoured(params, stages)}
