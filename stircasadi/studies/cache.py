@@ -26,7 +26,7 @@ from ..io import atomic_write_text
 __all__ = ["cell_key", "CellCache", "ENGINE_VERSION", "dumps", "json_default"]
 
 #: bump when a record's meaning changes (new measures, other defaults)
-ENGINE_VERSION = 1
+ENGINE_VERSION = 2
 
 
 def json_default(o):
