@@ -165,7 +165,7 @@ def occluded(seeds=range(7), n_corrupt=8):
     from stircasadi.geometry import estimate_geometry
     from stircasadi.errors import SolverError
     from stircasadi.geometry.estimate import GeometrySettings
-    from stircasadi.geometry.report import position_rmse
+    from stircasadi.report import position_rmse
     from stircasadi.problem import load_problem
     from stircasadi.transport import simulate
 

@@ -29,6 +29,11 @@ def _simulate_problem(name: str | None, noise: bool = True, seed: int = 0, bounc
     scene, grid, sensor = mod.build_scene(), mod.build_grid(), mod.build_sensor()
     tr = simulate(scene, grid, sensor=sensor, bounces=bounces)
     cap = sensor.capture(tr, seed=seed, noise=noise)
+    priors = getattr(mod, "PRIORS", None)
+    if priors:  # the experimenter's declared knowledge travels with the capture (priors/ group)
+        cap.extras["priors"] = {"__attrs__": {k: (json.dumps({str(i): a for i, a in v.items()})
+                                                   if isinstance(v, dict) else v)
+                                              for k, v in priors.items()}}
     return mod, scene, tr, cap
 
 
@@ -43,71 +48,71 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-def _geometry_stage(cap, hidden):
-    try:
-        from .geometry import estimate_geometry
-    except ImportError:
+EXIT_UNRELIABLE = 3
+
+
+def _areas_arg(v):
+    if v is None:
         return None
-    return estimate_geometry(cap, hidden=hidden)
-
-
-def _reflectance_stage(cap, geo, brdf):
+    p = Path(v)
     try:
-        from .estimate.pipeline import estimate_reflectance
-    except ImportError:
-        return None
-    return estimate_reflectance(cap, geo, brdf=brdf)
-
-
-def _estimate(cap, hidden, brdf):
-    """Geometry then reflectance; returns (geometry estimate, reflectance estimate, json dict)."""
-    geo = _geometry_stage(cap, hidden)
-    if geo is None:
-        raise StircasadiError("The geometry stage (stircasadi.geometry) is not available in this build.")
-    if not cap.is_full:  # relay-wall / confocal scans: geometry only
-        result = geo.to_json_dict()
-        result.setdefault("stages", {})["reflectance"] = {
-            "status": "skipped: the capture holds paired traces; the joint reflectance NLP needs "
-                      "a full STIR (n_illuminated, n_observed, n_bins)", "success": None}
-        return geo, None, result
-    est = _reflectance_stage(cap, geo, brdf)
-    result = est.to_json_dict(geo) if est is not None else geo.to_json_dict()
-    return geo, est, result
-
-
-def _failed(result: dict) -> bool:
-    stages = result.get("stages", {})
-    items = stages.values() if isinstance(stages, dict) else stages
-    return any(isinstance(s, dict) and s.get("success") is False for s in items)
+        if p.suffix.lower() == ".json" or p.exists():
+            d = json.loads(p.read_text())
+        else:
+            d = json.loads(v)
+        return {int(k): float(a) for k, a in d.items()}
+    except (OSError, ValueError, AttributeError, TypeError) as exc:
+        raise StircasadiError(f"--areas must be a JSON object {{patch id: area in m^2}} or a .json file "
+                              f"holding one; got {v!r} ({exc}).") from exc
 
 
 def cmd_estimate(args) -> int:
     from .capture import Capture
+    from .io import atomic_write_text, check_output
+    from .pipeline import estimate_capture
+    from .report import dumps, table
 
+    out = check_output(args.out, inputs=[args.capture], what="estimate", suffixes=(".json",))
     cap = Capture.read(args.capture)
     try:
-        _, _, result = _estimate(cap, args.hidden, args.brdf)
+        res = estimate_capture(cap, hidden=args.hidden, brdf=args.brdf, areas=_areas_arg(args.areas),
+                               flatland=True if args.flatland else None)
     except SolverError as exc:
         print(f"stircasadi estimate: solver failed: {exc}", file=sys.stderr)
         return 2
-    Path(args.out).write_text(json.dumps(result, indent=2, default=_json_default))
-    print(f"wrote {args.out}")
-    return 1 if _failed(result) else 0
+    d = res.to_json_dict()
+    atomic_write_text(out, dumps(d))
+    if d.get("patches") and d.get("version") == 2 and "reasons" in d:
+        print(table(d))
+    print(f"verdict: {d.get('verdict')}" + ("" if d.get("success") else
+                                           " — " + "; ".join(d.get("reasons", []))))
+    print(f"wrote {out}")
+    return 0 if d.get("success") else EXIT_UNRELIABLE
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    return str(o)
+def _known_geometry(mod, scene, cap) -> str | None:
+    """A problem that exercises one stage (``ESTIMATE = {"stage": "reflectance"}``: a reflectance
+    twin with known geometry) gives its visible points, normals and areas to the estimator, as a
+    calibrated scanner would; says so."""
+    opts = getattr(mod, "ESTIMATE", {}) or {}
+    if opts.get("stage") != "reflectance":
+        return None
+    obs = cap.obs_ids()
+    cap.observed_xyz = scene.positions[obs]
+    cap.extras["observed_normals"] = scene.normals[obs]
+    pri = dict(cap.extras.get("priors", {"__attrs__": {}}).get("__attrs__", {}))
+    pri["areas"] = json.dumps({str(int(i)): float(scene.areas[i]) for i in obs})
+    cap.extras["priors"] = {"__attrs__": pri}
+    return "stage: reflectance only (the problem gives the visible geometry and areas)"
 
 
 def cmd_run(args) -> int:
+    from .io import atomic_write_text, check_output
+    from .pipeline import estimate_capture
+    from .report import dumps, table
     from .viz import plot_profiles, render_scene
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output(args.out, what="output", folder=True)
     timings = {}
     t0 = time.perf_counter()
     mod, scene, tr, cap = _simulate_problem(args.problem, seed=args.seed)
@@ -118,70 +123,55 @@ def cmd_run(args) -> int:
     print(f"simulated STIR {cap.stir.shape} on {tr.grid}: method={m['method']}, bounces={m['bounces']}, "
           f"irf={m['irf']}, occlusion={m['occlusion']}, noise={cap.noise.get('model')}; "
           f"omitted energy {m.get('omitted_energy_rel', 0.0):.2e}")
+    stage = _known_geometry(mod, scene, cap)
+    if stage:
+        print(stage)
+    out.mkdir(parents=True, exist_ok=True)
+    truth = cap.truth
     cap_path = cap.write(out / "capture.h5")
-    geo = est = None
-    result = None
-    code = 0
+    blind = cap
+    blind.truth = None  # the estimator never sees the truth
+    opts = dict(getattr(mod, "ESTIMATE", {}) or {})
+    t1 = time.perf_counter()
     try:
-        t1 = time.perf_counter()
-        geo = _geometry_stage(cap, None)
-        timings["geometry"] = time.perf_counter() - t1
-        if geo is not None:
-            t2 = time.perf_counter()
-            est = _reflectance_stage(cap, geo, "lambertian")
-            if est is not None:
-                timings["reflectance"] = time.perf_counter() - t2
+        res = estimate_capture(blind, brdf=opts.get("brdf", "lambertian"), hidden=opts.get("hidden"))
     except SolverError as exc:
         print(f"solver failed: {exc}", file=sys.stderr)
-        code = 2
-    truth = cap.truth
-    if geo is not None:
-        from .geometry import report_table as geometry_table
-        print(geometry_table(geo, truth))
-    if est is not None:
-        from .estimate.pipeline import report_table
-        print(report_table(est, truth, timings=timings))
-    if geo is None:
-        print("(estimators not available in this build: simulation only)")
-    if geo is not None:
-        result = est.to_json_dict(geo) if est is not None else geo.to_json_dict()
-        (out / "estimate.json").write_text(json.dumps(result, indent=2, default=_json_default))
-        if _failed(result):
-            code = 1
-    pics = [render_scene(scene, out / "scene.png",
-                         estimate_positions=_aligned_positions(geo, scene),
-                         title=f"{scene.name}: truth (blue/orange) and estimate (green)")]
-    pics.append(plot_profiles(cap.stir, cap.grid, out / "profiles.png",
-                              title=f"{scene.name}: simulated STIR"))
+        return 2
+    timings["estimate"] = time.perf_counter() - t1
+    cap.truth = truth
+    d = res.to_json_dict()
+    print(table(d, truth))
+    for c in d.get("checks", []):
+        if not c["passed"]:
+            print(f"check failed: {c['name']}: {c['message']}")
+    print(f"verdict: {d['verdict']}" + ("" if d["success"] else " — " + "; ".join(d["reasons"])))
+    atomic_write_text(out / "estimate.json", dumps(d))
+    pics = []
+    try:
+        pics.append(render_scene(scene, out / "scene.png", estimate_positions=_aligned_positions(d, truth),
+                                 title=f"{scene.name}: truth (blue/orange) and estimate (green)"))
+    except Exception as exc:  # a picture never costs a result
+        print(f"scene picture skipped: {type(exc).__name__}: {exc}", file=sys.stderr)
+    pics.append(plot_profiles(cap.stir, cap.grid, out / "profiles.png", title=f"{scene.name}: simulated STIR"))
     timings["total"] = time.perf_counter() - t0
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()))
     report = {"problem": getattr(mod, "NAME", args.problem), "version": __version__,
               "simulation": {k: v for k, v in m.items() if not k.startswith("_")},
-              "timings_s": timings, "capture": str(cap_path), "pictures": [str(p) for p in pics],
-              "estimate": result}
-    (out / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
-    print(f"wrote {out / 'report.json'}, {', '.join(str(p) for p in pics)}")
-    return code
+              "timings_s": timings, "capture": str(cap_path), "pictures": [str(p) for p in pics]}
+    atomic_write_text(out / "report.json", dumps(report))
+    print(f"wrote {out / 'capture.h5'}, {out / 'estimate.json'}, {out / 'report.json'}, "
+          f"{', '.join(str(p) for p in pics)}")
+    return 0 if d["success"] else EXIT_UNRELIABLE
 
 
-def _aligned_positions(geo, scene):
-    """Estimated positions in the scene's frame, for the picture: as they are when the estimate
-    is in the capture's frame, else mapped about the source onto the visible truth by the
-    orthogonal Procrustes solution (a rotation, or a reflection: distances alone cannot tell a
-    scene from its mirror image)."""
-    if geo is None:
-        return None
-    P = np.asarray(geo.positions, float)
-    if getattr(geo, "frame", None) == "capture":
-        return P
-    vis = np.asarray(geo.visible, bool)
-    ids = np.asarray(geo.ids, int)[vis]
-    if vis.sum() < 2 or ids.max() >= scene.n_patches:
-        return None
-    from .geometry.report import procrustes_matrix
+def _aligned_positions(d, truth):
+    """Estimated positions in the truth's frame (for the picture): ``report.alignment``."""
+    from .report import alignment, vec
 
-    Q = procrustes_matrix(P[vis] - geo.source_xyz, scene.positions[ids] - scene.source)
-    return (P - geo.source_xyz) @ Q + scene.source
+    Q, s, st = alignment(d, truth)
+    P = np.array([vec(p.get("position")) for p in d["patches"]])
+    return (P - s) @ Q + st
 
 
 def cmd_problems(args) -> int:
@@ -219,7 +209,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("capture")
     e.add_argument("--out", required=True)
     e.add_argument("--hidden", type=int, default=None, help="number of hidden patches (default: detect)")
-    e.add_argument("--brdf", choices=["lambertian", "phong"], default="lambertian")
+    e.add_argument("--brdf", choices=["lambertian", "phong"], default="lambertian",
+                   help="reflectance model of the visible patches (default: %(default)s)")
+    e.add_argument("--areas", default=None,
+                   help="declared patch areas: a JSON object {id: m^2} or a .json file (default: "
+                        "estimated where the data identify them)")
+    e.add_argument("--flatland", action="store_true",
+                   help="declare that every patch lies in the plane of the source and the visible "
+                        "patches (as in the paper's Fig. 12)")
     e.set_defaults(func=cmd_estimate)
 
     pr = sub.add_parser("problems", help="list the problem scripts")
@@ -231,6 +228,12 @@ def build_parser() -> argparse.ArgumentParser:
         add_parsers = None
     if add_parsers is not None:
         add_parsers(sub)
+    try:
+        from .apps.cli import add_parsers as add_app_parsers
+    except ImportError:
+        add_app_parsers = None
+    if add_app_parsers is not None:
+        add_app_parsers(sub)
     try:
         from .studies.cli import add_parsers as add_study_parsers
     except ImportError:

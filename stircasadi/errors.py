@@ -74,6 +74,22 @@ class AcquisitionSettingsError(StircasadiError, ValueError):
     """An acquisition setting (port, baud rate, timeout, shots...) is outside its allowed range."""
 
 
+class EstimateInputError(StircasadiError, ValueError):
+    """An estimate.json cannot be rendered as asked (a null position or area, an UNRELIABLE
+    verdict, a malformed covariance); the message names the patch, the value and the input
+    that would fix it."""
+
+
+class IlluminationError(StircasadiError, ValueError):
+    """An illumination pattern does not fit the STIR or scene it is applied to (weights of the
+    wrong length, unknown or unlit patch ids, delays or pulses that are not finite)."""
+
+
+class CodeError(StircasadiError, ValueError):
+    """An illumination code or input/output record cannot be deconvolved (ill-conditioned code,
+    period shorter than the response, mismatched record lengths)."""
+
+
 class StudyError(StircasadiError, ValueError):
     """A study spec is malformed (unknown factor, bad value, empty design) or its output folder
     cannot hold the results."""

@@ -66,6 +66,7 @@ class IdealIRF:
 
     kind = "ideal"
     band_limited = False
+    differentiable = False
     sigma = 0.0
 
     def cdf(self, x):
@@ -98,6 +99,7 @@ class GaussianIRF:
     fwhm: float = DEFAULT_FWHM
     kind = "gaussian"
     band_limited = True
+    differentiable = True
 
     def __post_init__(self):
         try:
@@ -158,6 +160,7 @@ class ArrayIRF:
     bin_width: float
     kind = "array"
     band_limited = False
+    differentiable = True   # a smooth symbolic H exists (``symbolic_cdf``)
 
     def __post_init__(self):
         s = np.asarray(self.samples, dtype=float)
@@ -209,6 +212,18 @@ class ArrayIRF:
     def discrete(self, bin_width: float) -> tuple[np.ndarray, int]:
         return discrete_kernel(self, bin_width)
 
+
+    @cached_property
+    def symbolic_cdf(self):
+        """CasADi function H(x): cubic B-spline through the PCHIP cdf on a grid of w/8, flat
+        (0, 1) for two response widths beyond the support."""
+        import casadi as ca
+
+        lo, hi = self.support()
+        pad = 2.0 * (hi - lo)
+        x = np.linspace(lo - pad, hi + pad, int(round((hi - lo + 2 * pad) / (self.bin_width / 8))) + 1)
+        return ca.interpolant("irf_cdf", "bspline", [x.tolist()], self.cdf(x).tolist())
+
     def describe(self) -> str:
         return f"measured ({len(self.samples)} samples, fwhm~{self.fwhm:.4g} m)"
 
@@ -221,10 +236,20 @@ def bin_integral(irf: IRF, left, width: float):
     edge that lands in a bin of ``width`` (``left`` = bin left edge - path length). NumPy arrays,
     or CasADi symbols for a ``GaussianIRF``: the one bin integral of the project."""
     if B.is_symbolic(left):
-        if not isinstance(irf, GaussianIRF):
-            raise SensorError(f"A symbolic (differentiable) bin integral needs a GaussianIRF; got "
-                              f"{irf.describe()}. Keep positions fixed or fit a Gaussian response.")
         import casadi as ca
+        if isinstance(irf, ArrayIRF):
+            H = irf.symbolic_cdf
+            lo, hi = irf.support()
+            pad = 2.0 * (hi - lo)
+
+            def h(v):  # constant beyond the spline's grid (its extrapolation is linear)
+                return H(ca.fmin(ca.fmax(v, lo - pad), hi + pad))
+            shp = left.shape
+            a, b = ca.vec(left + width).T, ca.vec(left).T
+            return ca.reshape(h(a) - h(b), shp[0], shp[1])
+        if not isinstance(irf, GaussianIRF):
+            raise SensorError(f"A symbolic (differentiable) bin integral needs a Gaussian or a "
+                              f"measured response; got {irf.describe()}.")
         c = 1.0 / (_SQ2 * irf.sigma)
         return 0.5 * (ca.erf((left + width) * c) - ca.erf(left * c))
     return irf.cdf(np.asarray(left) + width) - irf.cdf(left)
@@ -343,12 +368,17 @@ def from_samples(samples, bin_width: float, tol: float = GAUSSIAN_TOL) -> IRF:
 def estimate_samples(traces: np.ndarray, half_bins: int = 40, frac: float = 0.3,
                      min_traces: int = 1, trim: bool = True) -> np.ndarray | None:
     """The impulse response from first-bounce returns: each trace's first local peak above
-    ``frac`` of its maximum (background = its median removed), windows of ``2 half_bins + 1``
-    bins aligned on that peak, normalised and averaged; with ``trim`` only the central lobe is
-    kept (down to 1e-3 of the peak: later families of other traces average out). Peak at the
-    centre sample; None when fewer than ``min_traces`` traces have a usable first peak."""
+    ``frac`` of its maximum (background = its median removed) is located below the bin (a
+    parabola through three bins), its window of ``2 half_bins + 1`` bins is shifted onto the
+    bin centre (a Fourier shift: the response is smooth) and normalised, and the windows are
+    averaged; with ``trim`` only the central lobe is kept (down to 1e-3 of the peak: later
+    families of other traces average out). Peak at the centre sample; None when fewer than
+    ``min_traces`` traces have a usable first peak."""
     tr = np.atleast_2d(np.asarray(traces, float))
-    acc, n = np.zeros(2 * half_bins + 1), 0
+    L = 2 * half_bins + 1
+    pad = half_bins
+    acc, n = np.zeros(L), 0
+    freq = np.fft.rfftfreq(L + 2 * pad)
     for y in tr:
         y = y - np.median(y)
         m = y.max()
@@ -356,9 +386,13 @@ def estimate_samples(traces: np.ndarray, half_bins: int = 40, frac: float = 0.3,
             continue
         k0 = int(np.flatnonzero(y >= frac * m)[0])
         k = k0 + int(np.argmax(y[k0:k0 + max(3, half_bins // 2)]))
-        if k < half_bins or k + half_bins >= len(y):
+        if k < half_bins + pad or k + half_bins + pad >= len(y):
             continue
-        seg = y[k - half_bins:k + half_bins + 1]
+        a_, b_, c_ = y[k - 1], y[k], y[k + 1]
+        den = a_ - 2 * b_ + c_
+        delta = 0.5 * (a_ - c_) / den if den < 0 else 0.0
+        seg = y[k - half_bins - pad:k + half_bins + pad + 1]
+        seg = np.fft.irfft(np.fft.rfft(seg) * np.exp(2j * np.pi * freq * delta), n=len(seg))[pad:pad + L]
         if seg.sum() > 0:
             acc += seg / seg.sum()
             n += 1

@@ -1,14 +1,32 @@
-"""The inverse route, top to bottom: ``Capture -> GeometryEstimate -> model -> NLP -> Estimate``.
+"""The inverse route, top to bottom: ``Capture -> CaptureView -> GeometryEstimate -> joint fit ->
+checks -> estimate.json``.
 
 ``estimate_capture(capture, ...)`` is what ``stircasadi estimate`` and ``stircasadi run`` call,
-and what studies, applications and user scripts should call: it returns an ``EstimateResult``
-whose ``to_json_dict()`` is the estimate.json structure documented in docs/estimate-json.md.
+and what studies, applications and user scripts should call. It never reads the capture's
+``truth``. Its ``EstimateResult.to_json_dict()`` is the structure of docs/estimate-json.md; its
+``success`` is true only when every solve converged and every self-check passed.
+
+Route: full STIRs with the source and camera legs go through onsets -> distances -> positions
+(``stircasadi.geometry``) and the joint CasADi/IPOPT fit of everything the data identify, with
+hidden patches found in the residual (``stircasadi.joint``); paired or rectified relay-wall scans
+go to the relay-wall reconstruction (``stircasadi.geometry.relay``).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from . import __version__
+from .errors import GeometryError, ModelError
+from .progress import get_logger
+from .view import CaptureView
+
 __all__ = ["estimate_capture", "EstimateResult"]
+
+log = get_logger(__name__)
+UNITS = {"length": "m", "time": "m of optical path", "area": "m^2", "angle": "rad"}
 
 
 @dataclass
@@ -17,7 +35,8 @@ class EstimateResult:
 
     json: dict
     geometry: object = None
-    joint: object = None
+    fit: object = None
+    view: object = None
     extra: dict = field(default_factory=dict)
 
     @property
@@ -28,15 +47,135 @@ class EstimateResult:
         return self.json
 
 
-def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian", areas=None,
-                     settings=None) -> EstimateResult:
-    """Estimate geometry and reflectance from ``capture`` (never reading its ``truth``)."""
-    from .cli import _estimate
+def _priors(areas, flatland) -> dict:
+    out = {}
+    if areas is not None:
+        if isinstance(areas, dict):
+            out["areas"] = {int(k): float(v) for k, v in areas.items()}
+        else:
+            raise ModelError(f"areas must be a dict {{patch id: m^2}}; got {type(areas).__name__}.")
+        bad = {k: v for k, v in out["areas"].items() if not (v > 0 and np.isfinite(v))}
+        if bad:
+            raise ModelError(f"declared areas must be > 0 m^2; got {bad}.")
+    if flatland is not None:
+        out["flatland"] = bool(flatland)
+    return out
 
-    geo, est, result = _estimate(capture, hidden, brdf)
-    result = dict(result)
-    result["version"] = 2
-    result.setdefault("checks", [])
-    result.setdefault("reasons", [])
-    result["verdict"] = "OK" if result.get("success", False) else "UNRELIABLE"
-    return EstimateResult(json=result, geometry=geo, joint=est)
+
+def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian", areas=None,
+                     flatland: bool | None = None, settings=None) -> EstimateResult:
+    """Estimate geometry, reflectance and hidden patches from ``capture`` (see module docstring).
+
+    hidden : number of hidden patches to place (None: as many as the data ask for).
+    brdf : ``"lambertian"`` or ``"phong"`` (a Phong lobe on every visible patch).
+    areas : declared patch areas {id: m^2} (priors; the capture's ``priors/`` group may hold them).
+    flatland : every patch lies in the plane of the source and the visible patches (prior).
+    """
+    from .joint.settings import EstimateSettings
+
+    if brdf not in ("lambertian", "phong"):
+        raise ModelError(f"brdf must be 'lambertian' or 'phong'; got {brdf!r}.")
+    if hidden is not None and (not isinstance(hidden, (int, np.integer)) or hidden < 0):
+        raise ModelError(f"hidden must be None or an integer >= 0; got {hidden!r}.")
+    settings = (settings or EstimateSettings()).validate()
+    t0 = time.perf_counter()
+    view = CaptureView.of(capture, _priors(areas, flatland))
+    if capture.stir is None or not capture.legs_included:
+        return _relay(capture, view, t0)
+    from .geometry import estimate_geometry
+    from .joint.checks import run_checks
+    from .joint.fit import fit_joint
+    from .joint.policy import VisibleStart
+    from .joint.result import patch_records
+
+    geo = estimate_geometry(capture, hidden=0 if hidden == 0 else None)
+    t_geo = time.perf_counter() - t0
+    M = len(view.ids)
+    if not np.array_equal(np.asarray(geo.ids[:M]), view.ids):
+        raise GeometryError("internal: geometry ids differ from the capture's visible ids")
+    from .geometry.normals import initial_normals
+
+    pairs = np.isfinite(geo.distances[:M, :M])
+    np.fill_diagonal(pairs, False)
+    n0, _ = initial_normals(geo.positions[:M], pairs, geo.camera_xyz if geo.camera_xyz is not None
+                            else view.camera, labels=None if geo.plane_labels is None else geo.plane_labels[:M])
+    start = VisibleStart(np.asarray(geo.positions[:M]), np.asarray(geo.position_std[:M]), n0,
+                         pairs=pairs)
+    t1 = time.perf_counter()
+    fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf)
+    t_fit = time.perf_counter() - t1
+    first = geo.onsets.get("r")
+    first = None if first is None else 2.0 * np.asarray(first) if view.colocated else None
+    checks = run_checks(view, fit, settings, first_paths=first)
+    est = fit.estimate
+    n_h = est.values["position"].shape[0] - M
+    base = int(max(view.ids.max(), view.ill.max(), view.obs.max())) + 1
+    ids = np.concatenate([view.ids, base + np.arange(n_h)])
+    vis = np.concatenate([np.ones(M, bool), np.zeros(n_h, bool)])
+    names = [f"V{int(i)}" for i in view.ids] + [f"H{int(i)}" for i in ids[M:]]
+    patches = patch_records(est, ids, vis, names, brdf)
+    failed = [c for c in checks if not c.passed]
+    reasons = [f"{c.name}: {c.message}" for c in failed]
+    success = est.success and not failed
+    amb = [a for a in geo.ambiguities if a.get("kind") not in ("hidden-normals-unmeasured",
+                                                              "unexplained-hidden-returns")]
+    cov = _covariance(est, patches, ids, fit.plan.names)
+    out = {
+        "format": "stircasadi.estimate", "version": 2, "producer": f"stircasadi {__version__}",
+        "units": UNITS, "success": bool(success), "verdict": "OK" if success else "UNRELIABLE",
+        "reasons": reasons, "frame": view.frame,
+        "source_xyz": view.source, "camera_xyz": view.camera,
+        "patches": patches, "covariance": cov,
+        "distances": {"ids": geo.ids[:M], "matrix": geo.distances[:M, :M], "eps": geo.eps[:M, :M],
+                      "eps_level": geo.eps_level},
+        "noise": {"sigma": fit.sigma, "source": fit.sigma_source, "capture_sigma": view.capture_sigma},
+        "chi2_dof": est.chi2_dof, "checks": [c.to_dict() for c in checks],
+        "ambiguities": amb + [{"kind": "note", "patch_ids": [], "message": n} for n in fit.notes],
+        "priors": view.priors,
+        "irf": {"kind": getattr(view.irf, "kind", "ideal"), "fwhm_m": getattr(view.irf, "fwhm", None),
+                "source": view.irf_source},
+        "stages": {**{k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in geo.stats.items()},
+                   "joint": {"status": est.status, "success": est.success, "solver": est.solver,
+                             "iterations": est.iterations, "wall_time_s": t_fit,
+                             "chi2_dof": est.chi2_dof, "std_inflation": est.inflation,
+                             "flags": est.flags, "search": fit.history, **est.extra.get("model", {})},
+                   "geometry_total": {"wall_time_s": t_geo}},
+    }
+    from .report import jsonable
+
+    return EstimateResult(jsonable(out), geometry=geo, fit=fit, view=view)
+
+
+def _covariance(est, patches, ids, plan_names):
+    """The joint covariance of the reported (non-null) numbers, named ``quantity[id].x``."""
+    keep, names = [], []
+    idx = {n: k for k, n in enumerate(est.q_names)}
+    for k, p in enumerate(patches):
+        for q in ("position", "normal", "area", "albedo", "albedo_area", "specular", "exponent"):
+            if p.get(q) is None or q not in est.values or (p.get("notes", {}).get(q) == "given"):
+                continue
+            width = 3 if q in ("position", "normal") else 1
+            for c in range(width):
+                key = f"{q}[{plan_names[k]}]" + ("" if width == 1 else f".{'xyz'[c]}")
+                if key in idx:
+                    keep.append(idx[key])
+                    names.append(f"{q}[{int(ids[k])}]" + ("" if width == 1 else f".{'xyz'[c]}"))
+    C = est.cov_q[np.ix_(keep, keep)] if keep else np.zeros((0, 0))
+    return {"parameters": names, "matrix": C}
+
+
+def _relay(capture, view, t0) -> EstimateResult:
+    from .geometry.relay import estimate_relay
+    from .report import jsonable
+
+    geo = estimate_relay(capture)
+    d = geo.to_json_dict()
+    d.update({"version": 2, "units": UNITS, "verdict": "OK" if geo.success else "UNRELIABLE",
+              "reasons": [] if geo.success else ["relay-wall stage failed"], "checks": [],
+              "priors": view.priors, "covariance": None})
+    d.setdefault("stages", {})["joint"] = {
+        "status": "skipped: paired or rectified relay-wall traces go to the relay-wall "
+                  "reconstruction (no joint STIR fit)", "success": None}
+    d["stages"]["total"] = {"wall_time_s": time.perf_counter() - t0}
+    return EstimateResult(jsonable(d), geometry=geo, view=view)
+

@@ -86,8 +86,10 @@ class Sensor:
 
     ``calibrated_camera=True`` models an intrinsically calibrated camera with a depth/normal
     channel: the Capture then records, for each observed patch, the unit ray direction from the
-    camera (``extras['ray_directions']``) and the surface normal (``extras['observed_normals']``),
-    in the scene's frame. Positions still come from time of flight (distance along each ray).
+    camera (``extras['ray_directions']``), the surface normal (``extras['observed_normals']``),
+    in the scene's frame, and the pixel's solid angle (``extras['pixel_solid_angle']``, sr: the
+    patch is the pixel's footprint, area = Omega r^2 / cos). Positions still come from time of
+    flight (distance along each ray).
     """
 
     irf: IdealIRF | GaussianIRF | ArrayIRF = field(default_factory=IdealIRF)
@@ -130,8 +132,12 @@ class Sensor:
                 raise SensorError("calibrated_camera needs the transient's scene to know the rays.")
             obs = np.asarray(transient.obs_ids)
             rays = scene.positions[obs] - scene.camera
-            extras["ray_directions"] = rays / np.linalg.norm(rays, axis=1)[:, None]
+            r = np.linalg.norm(rays, axis=1)
+            extras["ray_directions"] = rays / r[:, None]
             extras["observed_normals"] = scene.normals[obs]
+            # each pixel's solid angle: the patch's footprint seen from the camera
+            cos_t = -np.sum(extras["ray_directions"] * scene.normals[obs], axis=1)
+            extras["pixel_solid_angle"] = scene.areas[obs] * cos_t / r ** 2
         meta = dict(transient.metadata)
         meta.update(self.effects)
         meta["noise_applied"] = noise_attrs["model"]

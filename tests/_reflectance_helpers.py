@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stircasadi.estimate import EstimateSettings
+from stircasadi.joint import EstimateSettings
 from stircasadi.model import TransientModel
 from stircasadi.transport import simulate
 
@@ -22,14 +22,15 @@ def quiet(**kw) -> EstimateSettings:
     return s
 
 
-def hidden_model(sc, gr, irf, d_offsets=None, eps=0.03, albedo0=0.5):
-    """Hidden-corner model with hidden distances unknown, starting at truth + d_offsets."""
+def hidden_model(sc, gr, irf, offsets=None, eps=0.03, albedo0=0.5):
+    """Hidden-corner model with hidden positions unknown in the scene's plane (y = 0), starting at
+    truth + offsets ((n_hidden, 2): along x and z, metres)."""
     m = TransientModel.from_scene(sc, gr, irf)
     m.set_unknown("albedo", "all", initial=albedo0)
     h = np.flatnonzero(sc.hidden)
-    vis = np.flatnonzero(~sc.hidden)[:2]
-    true_d = np.array([[np.linalg.norm(sc.positions[k] - sc.positions[a]) for a in vis] for k in h])
-    off = np.zeros_like(true_d) if d_offsets is None else np.asarray(d_offsets, float)
+    basis = np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0]])
+    off = np.zeros((len(h), 2)) if offsets is None else np.asarray(offsets, float)
     for i, k in enumerate(h):
-        m.set_hidden_distances(k, vis, eps=eps, initial=true_d[i] + off[i])
-    return m, h, true_d
+        m.set_unknown("position", [k], initial=sc.positions[k] + basis @ off[i], lower=-eps, upper=eps,
+                      scale=eps, basis=basis)
+    return m, h

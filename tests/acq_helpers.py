@@ -47,3 +47,29 @@ def drivers(rig: EmulatedRig, retries: int = 0, timeout_s: float = 0.3):
     finally:
         scan.close()
         det.close()
+
+
+# ------------------------------------------------------------------ a cheap rig for the CLI in a child
+#: the child's scan: 12 patches, 2 observed, 64 bins (one row = 1 KiB)
+CHILD_GRID = TimeGrid(1.0, 0.01, 64)
+CHILD_PATCHES = 12
+
+
+def child_row(i: int) -> np.ndarray:
+    t = CHILD_GRID.centres
+    return np.stack([(1.0 + i + j) * np.exp(-0.5 * ((t - 1.2 - 0.02 * i - 0.05 * j) / 0.02) ** 2)
+                     for j in range(N_OBS)])
+
+
+def child_main(argv) -> int:
+    """``python tests/acq_helpers.py acquire --emulate synthetic ...``: the real ``acquire`` CLI
+    (signals, lock, journal, resume) on an emulated rig backed by ``child_row``."""
+    import stircasadi.acquisition.cli as cli
+
+    cli.forward_source = lambda problem: (child_row, CHILD_PATCHES, N_OBS, CHILD_GRID, None)
+    return cli.main(argv)
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(child_main(sys.argv[1:]))

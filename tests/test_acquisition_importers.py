@@ -46,6 +46,9 @@ def test_ytal_confocal(tmp_path):
     assert cap.grid.start == pytest.approx(0.5) and cap.grid.bin_width == pytest.approx(0.01)
     np.testing.assert_allclose(cap.trace(7, 7), H[:, 1, 2])   # row-major Sx, Sy -> id 1*5+2
     np.testing.assert_allclose(cap.source_xyz, [0.1, 0, 1])
+    # the wall grid is kept: trace 7 was measured at grid point (1, 2)
+    np.testing.assert_allclose(cap.observed_xyz[7], [1.0, 2.0, 0.0])
+    np.testing.assert_allclose(cap.illuminated_xyz, cap.observed_xyz)
 
 
 def test_ytal_exhaustive(tmp_path):
@@ -305,3 +308,73 @@ def test_znlos_grid_of_the_wrong_size_is_refused(tmp_path):
         f["cameraGridPositions"] = np.zeros((3, 4, 3))
     with pytest.raises(ImportFormatError, match="cameraGridPositions"):
         import_file(p, "znlos")
+
+
+# ------------------------------------------------------------------ y-tal export: ours -> y-tal -> ours
+def _same_capture(a, b):
+    for name in ("stir", "traces", "pairs", "illuminated_xyz", "observed_xyz", "source_xyz", "camera_xyz"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    np.testing.assert_array_equal(a.ill_ids(), b.ill_ids())
+    np.testing.assert_array_equal(a.obs_ids(), b.obs_ids())
+    assert a.grid == b.grid and a.legs_included == b.legs_included
+    assert a.noise.get("model") == b.noise.get("model")
+
+
+def _captures():
+    from stircasadi.capture import Capture
+    from stircasadi.timegrid import TimeGrid
+    g = TimeGrid(0.25, 0.004, 40)
+    rng = np.random.default_rng(3)
+    wall = np.stack(list(np.meshgrid(np.linspace(-1, 1, 3), np.linspace(-1, 1, 4), indexing="ij"))
+                    + [np.zeros((3, 4))], -1).reshape(12, 3)
+    ids = np.arange(12)
+    yield "confocal scan grid", Capture(grid=g, traces=rng.poisson(3, (12, 40)).astype(float),
+                                        pairs=np.stack([ids, ids], 1), legs_included=False,
+                                        illuminated_xyz=wall, observed_xyz=wall, illuminated_ids=ids,
+                                        observed_ids=ids, noise={"model": "poisson"},
+                                        provenance={"scan_shape": [3, 4]})
+    yield "paired laser/sensor", Capture(grid=g, traces=rng.random((12, 40)), pairs=np.stack([ids, ids + 12], 1),
+                                         legs_included=False, illuminated_xyz=wall, observed_xyz=wall + 0.1,
+                                         illuminated_ids=ids, observed_ids=ids + 12)
+    yield "irregular pairs, no points", Capture(grid=g, traces=rng.random((3, 40)),
+                                                pairs=[[5, 9], [2, 9], [5, 1]])
+    yield "full STIR with ids", Capture(grid=g, stir=rng.random((2, 3, 40)), illuminated_ids=[4, 7],
+                                        observed_ids=[4, 7, 9], source_xyz=[0, 0, 1], camera_xyz=[0.1, 0, 1],
+                                        illuminated_xyz=wall[:2], observed_xyz=wall[2:5],
+                                        noise={"model": "gaussian", "sigma": 0.01})
+    yield "one laser point", Capture(grid=g, stir=rng.random((1, 5, 40)), observed_xyz=wall[:5],
+                                     illuminated_xyz=wall[5:6])
+
+
+@pytest.mark.parametrize("name, cap", list(_captures()), ids=[n for n, _ in _captures()])
+def test_ytal_export_round_trip(tmp_path, name, cap):
+    from stircasadi.acquisition.importers import export_file
+    y = export_file(cap, "ytal", tmp_path / "y.hdf5")
+    assert detect_format(y) == "ytal"
+    _same_capture(import_file(y), cap)
+
+
+def test_ytal_export_of_a_confocal_grid_is_t_sx_sy(tmp_path):
+    """A confocal scan on a square grid is written the way y-tal's own files are (T_Sx_Sy)."""
+    from stircasadi.acquisition.importers import export_file
+    cap = dict(_captures())["confocal scan grid"]
+    y = export_file(cap, "ytal", tmp_path / "y.hdf5")
+    with h5py.File(y) as f:
+        assert f["H"].shape == (40, 3, 4) and int(f["H_format"][0]) == 1
+        assert f["sensor_grid_xyz"].shape == (3, 4, 3) and not f["t_accounts_first_and_last_bounces"][()]
+        np.testing.assert_array_equal(f["H"][:, 1, 2], cap.traces[6])
+
+
+def test_ytal_own_reader_opens_our_export(tmp_path):
+    """y-tal's NLOSCaptureData reads the export (y-tal is not a dependency: skipped without it)."""
+    tal = pytest.importorskip("tal")
+    from stircasadi.acquisition.importers import export_file
+    for name, cap in _captures():
+        y = export_file(cap, "ytal", tmp_path / f"{abs(hash(name))}.hdf5")
+        data = tal.io.read_capture(str(y))
+        H = cap.traces.T if cap.traces is not None else np.moveaxis(cap.stir, -1, 0)
+        np.testing.assert_array_equal(np.asarray(data.H).reshape(H.shape), H)
+        assert data.delta_t == pytest.approx(cap.grid.bin_width)

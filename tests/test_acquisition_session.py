@@ -7,7 +7,8 @@ import pytest
 
 from acq_helpers import GRID, N_OBS, N_PATCH, drivers, synthetic_row
 from stircasadi.acquisition.emulators import EmulatedRig, Fault
-from stircasadi.acquisition.session import acquire, partial_path, read_partial
+from stircasadi.acquisition.journal import journal_path
+from stircasadi.acquisition.session import acquire, read_partial
 from stircasadi.capture import Capture
 from stircasadi.errors import CaptureError, InstrumentError
 
@@ -26,7 +27,7 @@ def test_complete_capture_matches_source(tmp_path):
     with counter_rig() as rig, drivers(rig) as (scan, det):
         acquire(scan, det, out, shots=SHOTS, progress=lambda d, t, p, e: seen.append((d, t, p)))
     assert seen == [(1, 3, 0), (2, 3, 1), (3, 3, 2)]
-    assert not partial_path(out).exists()
+    assert not journal_path(out).exists()
     cap = Capture.read(out)
     assert cap.stir.shape == (N_PATCH, N_OBS, GRID.n_bins)
     expect = SHOTS * GAIN * TRUTH
@@ -77,7 +78,7 @@ def test_fault_raises_keeps_traces_and_resumes(tmp_path, where, fault, command):
         assert device in msg and repr(command) in msg and "received" in msg
         assert "--resume" in msg
         # patch 0 (and only the completed patches) are on disk, exactly as measured
-        part = read_partial(partial_path(out))
+        part = read_partial(journal_path(out))
         assert 0 in part.pairs[:, 0]
         done_before = set(part.pairs[:, 0].tolist())
         assert 2 not in done_before

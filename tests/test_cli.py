@@ -58,7 +58,7 @@ def test_import_then_estimate_real_confocal_scan(tmp_path, shared_data):
     assert main(["import", str(src), "--out", str(cap_path)]) == 0
     assert main(["estimate", str(cap_path), "--out", str(est_path)]) == 0
     d = json.loads(est_path.read_text())
-    assert d["stages"]["reflectance"]["status"].startswith("skipped")
+    assert d["stages"]["joint"]["status"].startswith("skipped")
     hidden = [p for p in d["patches"] if not p["visible"]]
     assert hidden, "no hidden point found"
     assert abs(hidden[-1]["position"][2] - 0.40) < 0.005   # the chart stands 40 cm from the wall

@@ -118,7 +118,7 @@ def test_three_patch_at_5db_snr(seed):
     0-5: 1-3 of the 3 distances detected; every detected distance inside its eps; with all three,
     RMSE 1.9 mm. Finite output, and either all distances with RMSE within the largest eps, or the
     missing ones left unknown and the embedding flagged underdetermined."""
-    from stircasadi.geometry.report import position_rmse
+    from stircasadi.report import position_rmse
 
     mod = load_problem("three_patch")
     sc, g = mod.build_scene(), mod.build_grid()

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from stircasadi.geometry import estimate_geometry
-from stircasadi.geometry.report import position_rmse
+from stircasadi.report import position_rmse
 from stircasadi.problem import load_problem
 from stircasadi.transport import simulate
 

@@ -142,7 +142,7 @@ class HistogramCounter(PortDevice):
             hc = f"HIST? {ch}"
 
             def once():
-                payload = p.query_block(hc)
+                payload = p.query_block(hc, expect=4 * self.n_bins)
                 try:
                     return decode_histogram(payload, self.n_bins)
                 except InstrumentError as exc:

@@ -1,9 +1,16 @@
-"""Instrument emulators on pseudo-terminals: a real tty that pyserial opens like hardware.
+"""Instrument emulators on pseudo-terminals and loopback sockets: links the drivers open like hardware.
 
 When to use: tests, demos and dry runs of ``stircasadi acquire`` without a rig. Each emulator
-owns a pty pair (``os.openpty``); the driver opens the slave path (``emulator.port``, e.g.
-``/dev/pts/7``) through pyserial exactly as it would open ``/dev/ttyUSB0``, and a thread answers
-on the master side with the wire protocol documented in ``scope``, ``scan`` and ``counter``.
+serves one transport:
+
+* ``transport="pty"``: a pty pair (``os.openpty``); the driver opens the slave path
+  (``emulator.port``, e.g. ``/dev/pts/7``) through pyserial exactly as it would open
+  ``/dev/ttyUSB0``;
+* ``transport="tcp"``: a TCP socket on the loopback address only (127.0.0.1, an ephemeral port);
+  ``emulator.port`` is the VISA resource ``TCPIP0::127.0.0.1::<port>::SOCKET`` that the drivers
+  open through pyvisa, as they would a LAN instrument.
+
+A thread answers with the wire protocol documented in ``scope``, ``scan`` and ``counter``.
 
 Data come from a pluggable callable ``trace_for(i) -> (n_observed, n_bins)`` (the ideal STIR row
 for aimed patch ``i``, e.g. the forward model's ``simulate(scene, grid).stir[i]``), shared through
@@ -17,11 +24,14 @@ a :class:`Bench` that also remembers where the scan controller aims:
 Fault injection (:class:`Fault`, fired on the ``nth`` time a command starting with ``command``
 arrives, once unless ``once=False``): ``stall`` (reply after ``stall_s``), ``drop`` (``n_bytes``
 removed from the middle of the reply), ``garbage`` (``n_bytes`` of noise before the reply),
-``truncate`` (only the first half of the reply is sent), ``disconnect`` (the port hangs up:
-the pty is closed, like an unplugged cable; :meth:`PtyDevice.reconnect` plugs it back in on a
-new path).
+``truncate`` (only the first half of the reply is sent), ``badlength`` (a binary block's header
+becomes ``#9099999999`` and nothing follows: a corrupt length field), ``disconnect`` (the port
+hangs up: the pty or socket is closed, like an unplugged cable; :meth:`EmulatedDevice.reconnect`
+plugs it back in on a new path). The scope emulator can also ignore ``DATA:SOURCE``
+(``ignores_source=True``: always channel 1, as a misconfigured scope does) and send a DPO-style
+preamble with extra fields (``dpo_preamble=True``).
 
-Threads are daemons and :meth:`PtyDevice.stop` always joins them (use the emulators as context
+Threads are daemons and :meth:`EmulatedDevice.stop` always joins them (use the emulators as context
 managers); writes are non-blocking so a client that stops reading never hangs the emulator.
 
 Neglects: baud-rate timing (a pty moves bytes as fast as it can).
@@ -31,6 +41,7 @@ from __future__ import annotations
 import errno
 import os
 import select
+import socket
 import threading
 import tty
 from dataclasses import dataclass
@@ -43,7 +54,8 @@ from ..timegrid import TimeGrid
 from .protocol import encode_block
 from .scope import lecroy_encode, tek_preamble_text
 
-FAULT_KINDS = ("stall", "drop", "garbage", "truncate", "disconnect")
+FAULT_KINDS = ("stall", "drop", "garbage", "truncate", "badlength", "disconnect")
+TRANSPORTS = ("pty", "tcp")
 
 
 @dataclass
@@ -94,12 +106,16 @@ class Bench:
         return row
 
 
-class PtyDevice:
-    """Base class: a thread that answers command lines on the master side of a pty."""
+class EmulatedDevice:
+    """Base class: a thread that answers command lines on a pty (master side) or a loopback socket."""
 
     name = "device"
 
-    def __init__(self, faults=(), terminator: bytes = b"\n", seed: int = 0):
+    def __init__(self, faults=(), terminator: bytes = b"\n", seed: int = 0, transport: str = "pty"):
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}; got {transport!r}.")
+        self.transport = transport
+        self.listener = self.conn = None
         self.faults = list(faults)
         self.term = terminator
         self.rng = np.random.default_rng(seed)
@@ -111,15 +127,22 @@ class PtyDevice:
         self.disconnected = False
 
     # ------------------------------------------------------------------ lifecycle
-    def _open_pty(self) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.slave)
-        os.set_blocking(self.master, False)
-        self.port = os.ttyname(self.slave)
+    def _open(self) -> None:
+        if self.transport == "tcp":
+            self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            self.listener.bind(("127.0.0.1", 0))          # loopback only, never the network
+            self.listener.listen(1)
+            self.listener.setblocking(False)
+            self.port = f"TCPIP0::127.0.0.1::{self.listener.getsockname()[1]}::SOCKET"
+        else:
+            self.master, self.slave = os.openpty()
+            tty.setraw(self.slave)
+            os.set_blocking(self.master, False)
+            self.port = os.ttyname(self.slave)
         self.disconnected = False
 
-    def start(self) -> "PtyDevice":
-        self._open_pty()
+    def start(self) -> "EmulatedDevice":
+        self._open()
         self._stop.clear()
         self._thread = threading.Thread(target=self._loop, name=f"emulator-{self.name}", daemon=True)
         self._thread.start()
@@ -139,6 +162,13 @@ class PtyDevice:
         return self.port
 
     def _close_fds(self) -> None:
+        for sock in (self.conn, self.listener):
+            if sock is not None:
+                try:
+                    sock.close()
+                except OSError:
+                    pass
+        self.conn = self.listener = None
         for fd in (self.master, self.slave):
             if fd >= 0:
                 try:
@@ -156,17 +186,59 @@ class PtyDevice:
     # ------------------------------------------------------------------ I/O
     def _send(self, data: bytes) -> None:
         view = memoryview(data)
-        while view and not self._stop.is_set():
-            _, w, _ = select.select([], [self.master], [], 0.05)
+        out = self.conn if self.transport == "tcp" else self.master
+        while view and not self._stop.is_set() and out is not None:
+            try:
+                _, w, _ = select.select([], [out], [], 0.05)
+            except (OSError, ValueError):
+                return
             if not w:
                 continue
             try:
-                n = os.write(self.master, view)
+                n = out.send(view) if self.transport == "tcp" else os.write(self.master, view)
             except BlockingIOError:
                 continue
             except OSError:
                 return
             view = view[n:]
+
+    def _receive(self) -> bytes | None:
+        """Bytes that arrived (b"" when none yet); None when the link is gone for good."""
+        if self.transport == "tcp":
+            if self.listener is None:
+                return None
+            if self.conn is None:
+                r, _, _ = select.select([self.listener], [], [], 0.02)
+                if r:
+                    self.conn, _ = self.listener.accept()
+                    self.conn.setblocking(False)
+                    self.conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                return b""
+            r, _, _ = select.select([self.conn], [], [], 0.02)
+            if not r:
+                return b""
+            try:
+                chunk = self.conn.recv(65536)
+            except BlockingIOError:
+                return b""
+            except OSError:
+                chunk = b""
+            if not chunk:  # the client closed: wait for the next one
+                self.conn.close()
+                self.conn = None
+            return chunk
+        r, _, _ = select.select([self.master], [], [], 0.02)
+        if not r:
+            return b""
+        try:
+            return os.read(self.master, 65536)
+        except BlockingIOError:
+            return b""
+        except OSError as exc:  # EIO: nobody holds the slave
+            if exc.errno == errno.EIO:
+                self._sleep(0.01)
+                return b""
+            return None
 
     def _sleep(self, s: float) -> None:
         self._stop.wait(s)
@@ -175,19 +247,10 @@ class PtyDevice:
         buf = b""
         while not self._stop.is_set():
             try:
-                r, _, _ = select.select([self.master], [], [], 0.02)
+                chunk = self._receive()
             except (OSError, ValueError):
                 return
-            if not r:
-                continue
-            try:
-                chunk = os.read(self.master, 65536)
-            except BlockingIOError:
-                continue
-            except OSError as exc:  # EIO: nobody holds the slave
-                if exc.errno == errno.EIO:
-                    self._sleep(0.01)
-                    continue
+            if chunk is None:
                 return
             buf += chunk
             while self.term in buf:
@@ -196,7 +259,7 @@ class PtyDevice:
                 if not cmd:
                     continue
                 self.log.append(cmd)
-                for part in [p.strip() for p in cmd.split(";") if p.strip()] if self.splits else [cmd]:
+                for part in [p.strip().lstrip(":") for p in cmd.split(";") if p.strip()] if self.splits else [cmd]:
                     if not self._dispatch(part):
                         return
 
@@ -225,6 +288,8 @@ class PtyDevice:
                 reply = junk + reply
             elif fault.kind == "truncate":
                 reply = reply[:len(reply) // 2]
+            elif fault.kind == "badlength" and b"#" in reply:
+                reply = reply[:reply.index(b"#")] + b"#9099999999"
         if reply:
             self._send(reply)
         return True
@@ -245,13 +310,14 @@ class PtyDevice:
         raise NotImplementedError
 
 
-class ScanControllerEmulator(PtyDevice):
+class ScanControllerEmulator(EmulatedDevice):
     """The galvo controller: ``*IDN?``, ``NPATCH?``, ``TABLE``, ``AIM`` (see ``scan``)."""
 
     name = "scan controller"
 
-    def __init__(self, bench: Bench, faults=(), settle_s: float = 0.0, seed: int = 0):
-        super().__init__(faults, seed=seed)
+    def __init__(self, bench: Bench, faults=(), settle_s: float = 0.0, seed: int = 0,
+                 transport: str = "pty"):
+        super().__init__(faults, seed=seed, transport=transport)
         self.bench = bench
         self.settle_s = settle_s
         # a default table: a small raster of angles
@@ -286,14 +352,15 @@ class ScanControllerEmulator(PtyDevice):
         return self.line(f"ERR 0 unknown command {cmd[:40]}")
 
 
-class CounterEmulator(PtyDevice):
+class CounterEmulator(EmulatedDevice):
     """A histogramming TCSPC counter (see ``counter`` for the protocol)."""
 
     name = "counter"
 
     def __init__(self, bench: Bench, gain: float = 1.0, dark: float = 0.0, sync_rate_hz: float = 1e7,
-                 pileup: bool = False, faults=(), seed: int = 0, sync_offset_m: float = 0.0):
-        super().__init__(faults, seed=seed)
+                 pileup: bool = False, faults=(), seed: int = 0, sync_offset_m: float = 0.0,
+                 transport: str = "pty"):
+        super().__init__(faults, seed=seed, transport=transport)
         self.bench = bench
         self.gain, self.dark, self.rate, self.pileup = gain, dark, sync_rate_hz, pileup
         self.sync_offset_m = sync_offset_m
@@ -340,7 +407,7 @@ class CounterEmulator(PtyDevice):
         return self.line(f"ERR 0 unknown command {cmd[:40]}")
 
 
-class ScopeEmulator(PtyDevice):
+class ScopeEmulator(EmulatedDevice):
     """A sampling oscilloscope, Tektronix (``dialect='tektronix'``) or LeCroy (``'lecroy'``)."""
 
     name = "oscilloscope"
@@ -348,8 +415,13 @@ class ScopeEmulator(PtyDevice):
 
     def __init__(self, bench: Bench, dialect: str = "tektronix", volts_per_unit: float = 1.0,
                  noise_v: float = 0.0, full_scale_v: float | None = None, faults=(), seed: int = 0,
-                 trigger_offset_m: float = 0.0):
-        super().__init__(faults, seed=seed)
+                 trigger_offset_m: float = 0.0, transport: str = "pty", ignores_source: bool = False,
+                 dpo_preamble: bool = False):
+        super().__init__(faults, seed=seed, transport=transport)
+        #: a misconfigured scope: DATA:SOURCE is accepted but every waveform is channel 1's
+        self.ignores_source = ignores_source
+        #: DPO/MDO/MSO-style preamble with fields the driver does not use
+        self.dpo_preamble = dpo_preamble
         self.bench = bench
         self.dialect = dialect
         self.vpu, self.noise_v = volts_per_unit, noise_v
@@ -382,15 +454,21 @@ class ScopeEmulator(PtyDevice):
             if up.startswith(("HEADER", "VERBOSE", "DATA:ENCDG", "DATA:WIDTH")):
                 return None
             if up.startswith("DATA:SOURCE CH"):
-                self.source = int(up.rsplit("CH", 1)[1])
+                if not self.ignores_source:
+                    self.source = int(up.rsplit("CH", 1)[1])
                 return None
+            if up == "DATA:SOURCE?":
+                return self.line(f":DATA:SOURCE CH{self.source}")
             if up == "WFMOUTPRE?":
                 self._pending = self._raw(self.source)
                 raw, ymult = self._pending
                 pre = {"BYT_NR": 2, "BIT_NR": 16, "ENCDG": "BIN", "BN_FMT": "RI", "BYT_OR": "MSB",
-                       "NR_PT": raw.size, "WFID": f"Ch{self.source}, emulated", "PT_FMT": "Y",
+                       "NR_PT": raw.size, "WFID": f"Ch{self.source}, DC coupling, emulated", "PT_FMT": "Y",
                        "XUNIT": "s", "XINCR": dt, "XZERO": t0, "PT_OFF": 0, "YUNIT": "V",
                        "YMULT": ymult, "YOFF": 0.0, "YZERO": 0.0}
+                if self.dpo_preamble:
+                    pre.update({"PT_ORDER": "LINEAR", "DOMAIN": "TIME", "WFMTYPE": "ANALOG_YT",
+                                "CENTERFREQUENCY": 0.0, "SPAN": 0.0, "REFLEVEL": 0.0})
                 return self.line(tek_preamble_text(pre))
             if up == "CURVE?":
                 raw, _ = getattr(self, "_pending", None) or self._raw(self.source)
@@ -401,9 +479,9 @@ class ScopeEmulator(PtyDevice):
         if up.startswith(("CHDR", "CFMT", "CORD")):
             return None
         if up.startswith("C") and ":WF?" in up:
-            ch = int(up[1:up.index(":")])
+            ch = 1 if self.ignores_source else int(up[1:up.index(":")])
             raw, ymult = self._raw(ch)
-            return encode_block(lecroy_encode(raw, ymult, 0.0, dt, t0)) + self.term
+            return encode_block(lecroy_encode(raw, ymult, 0.0, dt, t0, source=ch - 1)) + self.term
         return None
 
 
@@ -419,21 +497,24 @@ class EmulatedRig:
         The instrument's time axis (metres of path).
     detector : {'counter', 'tektronix', 'lecroy'}
     scan_faults, detector_faults : list of Fault
+    transport, scan_transport : {'pty', 'tcp'}
+        The detector's and the scan controller's link (tcp: a loopback VISA socket resource).
     **detector_kw
         Passed to the detector emulator (``gain``, ``dark``, ``noise_v``, ``pileup``, ...).
     """
 
     def __init__(self, trace_for, n_patches: int, n_observed: int, grid: TimeGrid,
                  detector: str = "counter", scan_faults=(), detector_faults=(), seed: int = 0,
-                 **detector_kw):
+                 transport: str = "pty", scan_transport: str = "pty", **detector_kw):
         self.bench = Bench(trace_for, n_patches, n_observed, grid)
-        self.scan = ScanControllerEmulator(self.bench, faults=scan_faults, seed=seed)
+        self.scan = ScanControllerEmulator(self.bench, faults=scan_faults, seed=seed,
+                                           transport=scan_transport)
         if detector == "counter":
             self.detector = CounterEmulator(self.bench, faults=detector_faults, seed=seed + 1,
-                                            **detector_kw)
+                                            transport=transport, **detector_kw)
         elif detector in ("tektronix", "lecroy"):
             self.detector = ScopeEmulator(self.bench, dialect=detector, faults=detector_faults,
-                                          seed=seed + 1, **detector_kw)
+                                          seed=seed + 1, transport=transport, **detector_kw)
         else:
             raise ValueError(f"detector must be 'counter', 'tektronix' or 'lecroy'; got {detector!r}.")
         self.kind = detector

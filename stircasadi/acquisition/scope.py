@@ -9,11 +9,24 @@ Wire protocol, Tektronix dialect (ASCII commands, LF-terminated)::
 
     *IDN?                 -> TEKTRONIX,DSA8300,B0xxxx,CF:91.1CT FV:1.0
     HEADER ON / VERBOSE ON   (so WFMOUTPRE? names every field)
-    DATA:ENCDG RIBINARY ; DATA:WIDTH 2 ; DATA:SOURCE CH1
-    WFMOUTPRE?            -> :WFMOUTPRE:BYT_NR 2;BIT_NR 16;ENCDG BIN;BN_FMT RI;BYT_OR MSB;NR_PT 1000;
+    DATA:ENCDG RIBINARY ; DATA:WIDTH 2
+    DATA:SOURCE CH1;:WFMOUTPRE?   (one compound line)
+                          -> :WFMOUTPRE:BYT_NR 2;BIT_NR 16;ENCDG BIN;BN_FMT RI;BYT_OR MSB;NR_PT 1000;
                              WFID "Ch1 ...";PT_FMT Y;XUNIT "s";XINCR 4.0E-12;XZERO 1.0E-9;PT_OFF 0;
                              YUNIT "V";YMULT 1.5625E-5;YOFF 0.0E0;YZERO 0.0E0
     CURVE?                -> :CURVE #42000<2000 bytes>\\n   (IEEE-488.2 definite-length block)
+
+DPO/MDO/MSO families add fields (``PT_ORDER``, ``DOMAIN``, ``WFMTYPE``, ``CENTERFREQUENCY``,
+``SPAN``, ``REFLEVEL``...): fields the driver does not use are kept in ``Waveform.header`` and
+recorded in the capture's provenance, never fatal; only ``DOMAIN`` other than ``TIME`` (a
+spectrum) is refused.
+
+Checks against a scope that misbehaves: every waveform's channel is verified against the
+preamble (``WFID "Ch2, ..."``; when the WFID names no channel, ``DATA:SOURCE?``), so a scope that
+ignores ``DATA:SOURCE`` is caught; the ``CURVE?`` block must announce exactly
+``NR_PT x BYT_NR`` bytes, checked on its header before the payload is read (a corrupt
+``#9099999999`` fails at once). LeCroy: ``WAVE_SOURCE`` (i16 @344: 0 = C1 ... 3 = C4) must be the
+channel asked for, and a block may not exceed the descriptor plus the record.
 
 Scaling (Tektronix programmer manuals): ``volts[k] = (raw[k] - YOFF) * YMULT + YZERO`` and
 ``t[k] = XZERO + XINCR * (k - PT_OFF)`` seconds after the trigger.
@@ -27,7 +40,7 @@ The LECROY_2_3 descriptor (template offsets, bytes): COMM_TYPE i16 @32 (0 byte, 
 COMM_ORDER i16 @34 (0 big-, 1 little-endian), WAVE_DESCRIPTOR i32 @36, USER_TEXT i32 @40,
 TRIGTIME_ARRAY i32 @48, RIS_TIME_ARRAY i32 @52, WAVE_ARRAY_1 i32 @60, WAVE_ARRAY_COUNT i32 @116,
 VERTICAL_GAIN f32 @156, VERTICAL_OFFSET f32 @160, HORIZ_INTERVAL f32 @176, HORIZ_OFFSET f64 @180,
-VERTUNIT char[48] @196, HORUNIT char[48] @244. Scaling: ``volts = GAIN * raw - OFFSET``,
+VERTUNIT char[48] @196, HORUNIT char[48] @244, WAVE_SOURCE i16 @344. Scaling: ``volts = GAIN * raw - OFFSET``,
 ``t[k] = HORIZ_OFFSET + k * HORIZ_INTERVAL``.
 
 Units at the edge: samples are taken as bin centres, so the time grid is
@@ -41,6 +54,7 @@ envelope waveforms, sequence/segmented records.
 from __future__ import annotations
 
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 
@@ -75,8 +89,10 @@ class Waveform:
 
 
 # ---------------------------------------------------------------------- Tektronix
+#: the preamble fields the driver uses; any other field is kept and recorded
 _TEK_KEYS = {"BYT_NR", "BIT_NR", "ENCDG", "BN_FMT", "BYT_OR", "NR_PT", "WFID", "PT_FMT", "XUNIT",
              "XINCR", "XZERO", "PT_OFF", "YUNIT", "YMULT", "YOFF", "YZERO", "NR_FR"}
+_QUOTED = ("WFID", "XUNIT", "YUNIT")
 _TEK_REQUIRED = ("BYT_NR", "BN_FMT", "BYT_OR", "NR_PT", "XUNIT", "XINCR", "XZERO", "PT_OFF",
                  "YUNIT", "YMULT", "YOFF", "YZERO")
 
@@ -98,8 +114,10 @@ def _split_fields(text: str) -> list[str]:
 def parse_wfmoutpre(text: str) -> dict:
     """Parse a verbose ``WFMOUTPRE?`` reply (``HEADER ON; VERBOSE ON``) into a dict.
 
-    Numbers become floats/ints, strings lose their quotes. Raises ``InstrumentError`` for a
-    missing field, a non-numeric number, an unknown field or the terse (header-off) form.
+    Numbers become floats/ints, strings lose their quotes; fields the driver does not use (DPO,
+    MDO, MSO: ``DOMAIN``, ``WFMTYPE``, ``CENTERFREQUENCY``...) are kept as text. Raises
+    ``InstrumentError`` for a missing field, a non-numeric number, the terse (header-off) form
+    or a frequency-domain record.
     """
     if not isinstance(text, str):
         raise InstrumentError(f"WFMOUTPRE? reply must be text; got {type(text).__name__}.")
@@ -120,9 +138,6 @@ def parse_wfmoutpre(text: str) -> dict:
             raise InstrumentError(
                 f"WFMOUTPRE? field {item!r} has no keyword/value pair; the driver needs the verbose "
                 "form (send 'HEADER ON' and 'VERBOSE ON' first). Reply was: " + repr(text[:200]))
-        if key not in _TEK_KEYS:
-            raise InstrumentError(f"WFMOUTPRE? holds unknown field {key!r}; known: "
-                                  f"{sorted(_TEK_KEYS)}. Reply was: {text[:200]!r}")
         val = val.strip()
         if val.startswith('"') and val.endswith('"') and len(val) >= 2:
             out[key] = val[1:-1]
@@ -150,7 +165,22 @@ def parse_wfmoutpre(text: str) -> dict:
     for k in ("BN_FMT", "BYT_OR", "ENCDG", "PT_FMT", "XUNIT", "YUNIT"):
         if k in out:
             out[k] = str(out[k]).strip().upper()
+    domain = str(out.get("DOMAIN", "TIME")).strip().upper()
+    if domain != "TIME":
+        raise InstrumentError(f"WFMOUTPRE? says DOMAIN {domain}: a frequency-domain (spectrum) record, "
+                              "not a time waveform; select a time-domain channel (DATA:SOURCE CHn).")
     return out
+
+
+def preamble_extras(pre: dict) -> dict:
+    """The preamble fields the driver does not use (recorded in provenance)."""
+    return {k: v for k, v in pre.items() if k not in _TEK_KEYS}
+
+
+def wfid_channel(wfid) -> int | None:
+    """The channel number a Tektronix ``WFID`` names (``"Ch2, DC coupling..."`` -> 2), or None."""
+    m = re.match(r"\s*(?:CH|C)\s*(\d+)\b", str(wfid or ""), re.IGNORECASE)
+    return int(m.group(1)) if m else None
 
 
 def tek_waveform(pre: dict, payload: bytes) -> Waveform:
@@ -199,7 +229,7 @@ def tek_preamble_text(pre: dict) -> str:
     """Format a preamble dict as the verbose ``WFMOUTPRE?`` reply (used by the emulator)."""
     parts = []
     for k, v in pre.items():
-        if k in ("WFID", "XUNIT", "YUNIT"):
+        if k in _QUOTED:
             parts.append(f'{k} "{v}"')
         elif isinstance(v, float):
             parts.append(f"{k} {v:.9E}")
@@ -274,12 +304,13 @@ def lecroy_waveform(block: bytes) -> Waveform:
         raise InstrumentError("LeCroy scaled waveform overflows (VERTICAL_GAIN/OFFSET out of range).")
     hdr = {"COMM_TYPE": comm_type, "COMM_ORDER": 1 if e == "<" else 0, "WAVE_ARRAY_COUNT": count,
            "VERTICAL_GAIN": gain, "VERTICAL_OFFSET": offset, "HORIZ_INTERVAL": hint,
-           "HORIZ_OFFSET": hoff}
+           "HORIZ_OFFSET": hoff, "WAVE_SOURCE": struct.unpack_from(e + "h", d, 344)[0]}
     return Waveform(volts=volts, t0_s=float(hoff), dt_s=float(hint), header=hdr)
 
 
 def lecroy_encode(raw: np.ndarray, gain: float, offset: float, hint: float, hoff: float,
-                  word: bool = True, little: bool = True, vunit: str = "V", hunit: str = "S") -> bytes:
+                  word: bool = True, little: bool = True, vunit: str = "V", hunit: str = "S",
+                  source: int = 9) -> bytes:
     """Build a LECROY_2_3 ``WF? ALL`` payload (used by the emulator and the tests)."""
     e = "<" if little else ">"
     raw = np.asarray(raw)
@@ -296,6 +327,7 @@ def lecroy_encode(raw: np.ndarray, gain: float, offset: float, hint: float, hoff
     struct.pack_into(e + "d", d, 180, hoff)
     d[196:196 + len(vunit)] = vunit.encode("ascii")
     d[244:244 + len(hunit)] = hunit.encode("ascii")
+    struct.pack_into(e + "h", d, 344, source)
     return bytes(d) + data
 
 
@@ -341,6 +373,8 @@ class Oscilloscope(PortDevice):
         self.port = Port(settings.serial, device=f"oscilloscope ({settings.dialect}) on {settings.serial.port}")
         self.identity = ""
         self._grid: TimeGrid | None = None
+        #: preamble fields the driver does not use (DPO/MDO/MSO: DOMAIN, WFMTYPE...), recorded
+        self.preamble_extra: dict = {}
 
     def open(self) -> "Oscilloscope":
         self.port.open()
@@ -357,32 +391,59 @@ class Oscilloscope(PortDevice):
     def n_observed(self) -> int:
         return len(self.settings.channels)
 
+    def _check_channel(self, channel: int, pre: dict) -> None:
+        """The waveform must come from ``channel`` (a scope ignoring DATA:SOURCE is caught)."""
+        p = self.port
+        got = wfid_channel(pre.get("WFID"))
+        said = f"WFID {pre.get('WFID')!r}"
+        if got is None:
+            line = p.query("DATA:SOURCE?")
+            m = re.search(r"CH\s*(\d+)", line, re.IGNORECASE)
+            got, said = (int(m.group(1)) if m else None), f"DATA:SOURCE? {line!r}"
+        if got != channel:
+            raise instrument_error(p.device, f"DATA:SOURCE CH{channel}",
+                                   f"the scope sent a waveform of {'an unknown channel' if got is None else f'CH{got}'} "
+                                   f"({said}) when CH{channel} was selected", said.encode(),
+                                   fix="The scope ignored DATA:SOURCE; check its remote settings "
+                                       "(channel on, not locked) and the --channels list.")
+
     def read_waveform(self, channel: int) -> Waveform:
         """One fresh acquisition of one channel (retried on timeouts and garbled replies)."""
         p = self.port
         if self.settings.dialect == "tektronix":
             def once() -> Waveform:
-                p.write(f"DATA:SOURCE CH{channel}")
-                text = p.query("WFMOUTPRE?")
+                # one compound line: two small writes in a row stall ~40 ms on TCP (Nagle)
+                text = p.query(f"DATA:SOURCE CH{channel};:WFMOUTPRE?")
                 try:
                     pre = parse_wfmoutpre(text)
                 except InstrumentError as exc:
                     raise instrument_error(p.device, "WFMOUTPRE?", str(exc).rstrip("."),
                                            text.encode()) from None
-                payload = p.query_block("CURVE?", allowed_prefix=b":CURVE ")
+                self._check_channel(channel, pre)
+                payload = p.query_block("CURVE?", allowed_prefix=b":CURVE ",
+                                        expect=int(pre["NR_PT"]) * int(pre["BYT_NR"]))
                 try:
-                    return tek_waveform(pre, payload)
+                    wf = tek_waveform(pre, payload)
                 except InstrumentError as exc:
                     raise instrument_error(p.device, "CURVE?", str(exc).rstrip("."), payload) from None
+                self.preamble_extra = preamble_extras(pre)
+                return wf
             return p.with_retries(once, "CURVE?")
         cmd = f"C{channel}:WF? ALL"
+        limit = None if self._grid is None else WAVEDESC_LEN + 65536 + 2 * self._grid.n_bins
 
         def once_lc() -> Waveform:
-            payload = p.query_block(cmd, allowed_prefix=f"C{channel}:WF ALL,".encode())
+            payload = p.query_block(cmd, allowed_prefix=f"C{channel}:WF ALL,".encode(), limit=limit)
             try:
-                return lecroy_waveform(payload)
+                wf = lecroy_waveform(payload)
             except InstrumentError as exc:
                 raise instrument_error(p.device, cmd, str(exc).rstrip("."), payload) from None
+            src = wf.header.get("WAVE_SOURCE")
+            if src in (0, 1, 2, 3, 4, 5, 6, 7) and src != channel - 1:
+                raise instrument_error(p.device, cmd, f"the scope sent a waveform of C{src + 1} "
+                                       f"(WAVE_SOURCE {src}) when C{channel} was asked for",
+                                       payload[:64], fix="Check the scope's remote settings.")
+            return wf
         return p.with_retries(once_lc, cmd)
 
     def grid(self) -> TimeGrid:
@@ -414,4 +475,5 @@ class Oscilloscope(PortDevice):
         s = self.settings
         return {"detector": "oscilloscope", "dialect": s.dialect, "identity": self.identity,
                 "channels": list(s.channels), "trigger_offset_m": s.trigger_offset_m,
-                "invert": s.invert, "unit": "V", "serial": s.serial.as_dict()}
+                "invert": s.invert, "unit": "V", "serial": s.serial.as_dict(),
+                "preamble_extra": dict(self.preamble_extra)}

@@ -1,7 +1,13 @@
-"""A binary-safe serial port for instruments: typed settings, deadlines, retries, clear errors.
+"""A binary-safe instrument link (serial or VISA): typed settings, deadlines, retries, clear errors.
 
 When to use: every driver in ``stircasadi.acquisition`` talks through :class:`Port`; open one with
 a :class:`SerialSettings` (only ``port`` is required, the rest have sensible defaults).
+
+Transports: ``port`` is a serial device or pyserial URL (``/dev/ttyUSB0``, ``COM3``, ``loop://``),
+opened with pyserial; or a VISA resource name (``TCPIP::192.168.1.5::INSTR``,
+``TCPIP0::host::5025::SOCKET``, ``USB0::0x0699::0x0401::C000001::INSTR``, ``GPIB0::7::INSTR``),
+opened with pyvisa (the optional extra ``stircasadi[visa]``; backend ``visa_library``, default
+``@py`` = pyvisa-py, pure Python). The drivers and their wire protocols are the same on both.
 
 Rules it enforces
 -----------------
@@ -16,10 +22,12 @@ Rules it enforces
 * Retries (``retries``) re-send a command after a timeout or a garbled reply, after draining the
   input; a disconnected port is never retried (``err.disconnected`` is True).
 
-Neglects: VISA, GPIB and network transports; pyserial URLs (``loop://``, ``socket://``) work too.
+Neglects: on VISA, the bytes of a reply that times out half way are not shown in the error
+(pyvisa drops them); VISA events and service requests (every reply is polled).
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, asdict
 from typing import Callable, TypeVar
@@ -64,13 +72,15 @@ class SerialSettings:
     max_block_bytes: int = 256 * 2**20
     #: longest text line accepted, bytes
     max_line_bytes: int = 65536
+    #: pyvisa backend for VISA resource names ('@py': pyvisa-py; '': the system's VISA library)
+    visa_library: str = "@py"
 
     def validate(self) -> "SerialSettings":
         if not isinstance(self.port, str) or not self.port:
             raise AcquisitionSettingsError(
                 f"SerialSettings.port must name a serial device (e.g. '/dev/ttyUSB0', 'COM3'); "
                 f"got {self.port!r}.")
-        if self.baudrate not in _STANDARD_BAUDS:
+        if not is_visa(self.port) and self.baudrate not in _STANDARD_BAUDS:
             raise AcquisitionSettingsError(
                 f"SerialSettings.baudrate must be a standard rate {_STANDARD_BAUDS}; got "
                 f"{self.baudrate!r}.")
@@ -105,6 +115,96 @@ class SerialSettings:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+_VISA = re.compile(r"^(TCPIP|USB|GPIB|ASRL|VXI|PXI|VICP)\d*::", re.IGNORECASE)
+
+
+def is_visa(port: str) -> bool:
+    """Whether ``port`` is a VISA resource name (``TCPIP::...``, ``USB0::...``) rather than a
+    serial device."""
+    return isinstance(port, str) and bool(_VISA.match(port))
+
+
+class SerialIO:
+    """The pyserial face of a link: reads return what arrived within one poll slice."""
+
+    def __init__(self, io):
+        self.io = io
+
+    def read_upto(self, n: int, remaining_s: float) -> bytes:
+        return self.io.read(n)
+
+    def write(self, data: bytes) -> None:
+        self.io.write(data)
+        self.io.flush()
+
+    def drain(self) -> None:
+        self.io.reset_input_buffer()
+
+    def close(self) -> None:
+        self.io.close()
+
+
+class VisaIO:
+    """The pyvisa face of a link: a read returns all ``n`` bytes within ``remaining_s``, or none.
+
+    (pyvisa drops the bytes of a read that times out, so a read never asks for more than the
+    protocol says must come.) A lost connection raises ``ConnectionError``."""
+
+    def __init__(self, resource):
+        self.res = resource
+        import pyvisa
+        self._err = pyvisa.errors.VisaIOError
+        self._tmo = pyvisa.constants.StatusCode.error_timeout
+
+    def _read(self, n: int, remaining_s: float, term: bytes | None) -> bytes:
+        from pyvisa import constants
+
+        if term is not None:
+            self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR, term[-1])
+        self.res.set_visa_attribute(constants.VI_ATTR_TERMCHAR_EN, term is not None)
+        self.res.timeout = max(1, int(remaining_s * 1000))
+        try:
+            return self.res.read_bytes(n, break_on_termchar=term is not None)
+        except self._err as exc:
+            if exc.error_code == self._tmo:
+                return b""
+            raise ConnectionError(str(exc)) from exc
+
+    def read_upto(self, n: int, remaining_s: float) -> bytes:
+        return self._read(n, remaining_s, None)
+
+    def read_line(self, term: bytes, max_bytes: int, remaining_s: float) -> bytes:
+        """One line ending in ``term`` (the VISA termination character), or b"" on timeout."""
+        return self._read(max_bytes, remaining_s, term)
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.res.write_raw(data)
+        except self._err as exc:
+            raise ConnectionError(str(exc)) from exc
+
+    def drain(self) -> None:
+        while self.read_upto(1, 0.001):
+            pass
+
+    def close(self) -> None:
+        self.res.close()
+
+
+def _open_visa(s: "SerialSettings"):
+    try:
+        import pyvisa
+    except ImportError as exc:
+        raise ImportError("VISA resources need pyvisa: pip install 'stircasadi[visa]' "
+                          "(pyvisa + pyvisa-py)") from exc
+    rm = pyvisa.ResourceManager(s.visa_library) if s.visa_library else pyvisa.ResourceManager()
+    res = rm.open_resource(s.port, open_timeout=int(s.timeout_s * 1000))
+    res.read_termination = None
+    res.write_termination = None
+    res.timeout = int(s.write_timeout_s * 1000)
+    return VisaIO(res)
 
 
 def _io_errors() -> tuple:
@@ -166,9 +266,19 @@ class Port:
 
     # ------------------------------------------------------------------ open/close
     def open(self) -> "Port":
+        s = self.settings
+        if is_visa(s.port):
+            try:
+                self.io = _open_visa(s)
+            except Exception as exc:  # ImportError, VisaIOError, ValueError on a malformed name
+                raise instrument_error(self.device, None, f"cannot open VISA resource {s.port!r} ({exc})",
+                                       fix="Check the address, that the instrument is on the network "
+                                           "and that pyvisa is installed (stircasadi[visa]).",
+                                       disconnected=True) from exc
+            self.io.drain()
+            return self
         import serial
 
-        s = self.settings
         try:
             io = serial.serial_for_url(s.port, do_not_open=True)
             io.baudrate = s.baudrate
@@ -184,9 +294,9 @@ class Port:
             raise instrument_error(self.device, None, f"cannot open port {s.port!r} ({exc})",
                                    fix="Check the cable, the port name and that no other program "
                                        "holds the port.", disconnected=True) from exc
-        self.io = io
+        self.io = SerialIO(io)
         try:
-            io.reset_input_buffer()
+            self.io.drain()
         except Exception:  # pragma: no cover - some URL handlers lack it
             pass
         return self
@@ -215,19 +325,19 @@ class Port:
         """Send one command line (the terminator is appended)."""
         self._need_open(command)
         try:
-            self.io.reset_input_buffer()  # stale replies never answer a new command
+            self.io.drain()  # stale replies never answer a new command
             self.io.write(command.encode("ascii") + self.term)
-            self.io.flush()
         except _io_errors() as exc:
             raise instrument_error(self.device, command, f"write failed, device disconnected? ({exc})",
                                    fix="Reconnect the instrument and resume the capture.",
                                    disconnected=True) from exc
 
     def _read(self, n: int, deadline: float, command: str, sofar: bytes) -> bytes:
-        if deadline - time.monotonic() <= 0:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
             return b""
         try:
-            return self.io.read(n)
+            return self.io.read_upto(n, remaining)
         except _io_errors() as exc:
             raise instrument_error(self.device, command, f"device disconnected during the reply ({exc})",
                                    sofar, fix="Reconnect the instrument and resume the capture.",
@@ -259,6 +369,13 @@ class Port:
         timeout = self.settings.timeout_s if timeout is None else timeout
         deadline = time.monotonic() + timeout
         buf = bytearray()
+        if isinstance(self.io, VisaIO):  # whole lines at once (byte-wise VISA reads are slow)
+            try:
+                buf += self.io.read_line(self.term, self.settings.max_line_bytes + 1, timeout)
+            except _io_errors() as exc:
+                raise instrument_error(self.device, command, f"device disconnected during the reply ({exc})",
+                                       fix="Reconnect the instrument and resume the capture.",
+                                       disconnected=True) from exc
         while not buf.endswith(self.term):
             if len(buf) > self.settings.max_line_bytes:
                 raise instrument_error(self.device, command,
@@ -279,11 +396,15 @@ class Port:
             raise instrument_error(self.device, command, str(exc).rstrip("."), bytes(buf),
                                    fix="Check the baud rate; noise on the line?") from None
 
-    def read_block(self, command: str, allowed_prefix: bytes = b"") -> bytes:
+    def read_block(self, command: str, allowed_prefix: bytes = b"", expect: int | None = None,
+                   limit: int | None = None) -> bytes:
         """Read one IEEE-488.2 definite-length block; returns the payload.
 
         Leading whitespace and ``allowed_prefix`` (e.g. ``b':CURVE '``) before ``#`` are skipped;
-        anything else is garbage and raises.
+        anything else is garbage and raises. ``expect`` (the length the protocol requires, e.g.
+        record length x bytes per point) or ``limit`` (the most it allows) are checked against
+        the header *before* the payload is read, so a corrupt length (``#9099999999``) fails at
+        once instead of waiting for bytes that never come.
         """
         self._need_open(command)
         s = self.settings
@@ -318,6 +439,17 @@ class Port:
             if getattr(exc, "device", None):
                 raise
             raise instrument_error(self.device, command, str(exc).rstrip("."), head) from None
+        if expect is not None and length != expect:
+            raise instrument_error(self.device, command,
+                                   f"block header announces {length} bytes but the preamble allows "
+                                   f"exactly {expect} (record length x bytes per point): a corrupt "
+                                   "length field", head, fix="Check the link (noise?) and the "
+                                   "instrument's DATA settings; the read was not attempted.")
+        if limit is not None and length > limit:
+            raise instrument_error(self.device, command,
+                                   f"block header announces {length} bytes, more than the {limit} the "
+                                   "record can hold: a corrupt length field", head,
+                                   fix="Check the link (noise?) and the instrument's settings.")
         if length > s.max_block_bytes:
             raise instrument_error(self.device, command,
                                    f"block header announces {length} bytes, more than "
@@ -326,7 +458,7 @@ class Port:
         payload = self.read_exact(length, command, s.timeout_for(length), sofar=head)
         # swallow the trailing terminator if the instrument sends one
         try:
-            tail = self.io.read(len(self.term))
+            tail = self.io.read_upto(len(self.term), _POLL_S)
         except Exception:
             tail = b""
         if tail and tail != self.term[:len(tail)]:
@@ -341,10 +473,11 @@ class Port:
         self.write(command)
         return self.read_line(command, timeout)
 
-    def query_block(self, command: str, allowed_prefix: bytes = b"") -> bytes:
-        """Write ``command`` and read one binary block."""
+    def query_block(self, command: str, allowed_prefix: bytes = b"", expect: int | None = None,
+                    limit: int | None = None) -> bytes:
+        """Write ``command`` and read one binary block (see :meth:`read_block`)."""
         self.write(command)
-        return self.read_block(command, allowed_prefix)
+        return self.read_block(command, allowed_prefix, expect=expect, limit=limit)
 
     def with_retries(self, fn: Callable[[], T], command: str) -> T:
         """Run ``fn`` (one command/reply exchange) up to ``retries + 1`` times.
@@ -363,7 +496,7 @@ class Port:
                 self.retries_used += 1
                 time.sleep(self.settings.retry_settle_s)
                 try:
-                    self.io.reset_input_buffer()
+                    self.io.drain()
                 except Exception:  # pragma: no cover
                     pass
         raise AssertionError("unreachable")  # pragma: no cover

@@ -9,13 +9,13 @@ Pipeline (``estimate_geometry``)::
            --hidden.py--> hidden distances (T3) and positions (trilateration), ambiguities
     relay / confocal captures --relay.py--> hidden surfaces from sphere / ellipsoid constraints
 
-The result is a ``GeometryEstimate`` (``result.py``); ``report_table`` prints it against a truth.
+The result is a ``GeometryEstimate`` (``result.py``); ``stircasadi.report`` compares it with a truth.
 """
 from __future__ import annotations
 
 from .result import GeometryEstimate, StageStats
 
-__all__ = ["GeometryEstimate", "StageStats", "estimate_geometry", "report_table"]
+__all__ = ["GeometryEstimate", "StageStats", "estimate_geometry"]
 
 
 def estimate_geometry(capture, hidden=None, settings=None):
@@ -23,10 +23,3 @@ def estimate_geometry(capture, hidden=None, settings=None):
     from .estimate import estimate_geometry as _impl
 
     return _impl(capture, hidden=hidden, settings=settings)
-
-
-def report_table(estimate, truth) -> str:
-    """Estimated vs true positions (Procrustes-aligned when frames differ); see ``report``."""
-    from .report import report_table as _impl
-
-    return _impl(estimate, truth)

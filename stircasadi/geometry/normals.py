@@ -97,3 +97,44 @@ def estimate_normals(X: np.ndarray, visible: np.ndarray | None = None, camera=No
     flip = np.einsum("md,md->m", out, target - X) < 0
     out[flip] *= -1
     return out
+
+
+def initial_normals(X: np.ndarray, pairs: np.ndarray, camera, labels: np.ndarray | None = None,
+                    min_cos: float = 0.05) -> tuple[np.ndarray, list]:
+    """Starting normals for the joint fit, consistent with what the data saw.
+
+    A patch faces the camera (it is seen) and every patch it exchanges a second bounce with
+    (``pairs[k, j]``: the onsets measured d_kj). Its plane group's normal is used when it makes
+    every such cosine positive (> ``min_cos``); otherwise the normalised bisector of the unit
+    vectors toward the camera and toward the partners, which does. Returns (normals (M, 3),
+    source per patch)."""
+    X = np.asarray(X, float)
+    M = len(X)
+    cam = np.asarray(camera, float)
+    grp = np.full((M, 3), np.nan)
+    if labels is not None and M >= 3:
+        for lab in np.unique(labels[labels >= 0]):
+            idx = np.flatnonzero(labels == lab)
+            if len(idx) >= 4:
+                n, _, _ = _fit_plane(X[idx])
+                grp[idx] = n
+    out = np.zeros((M, 3))
+    src = []
+    for k in range(M):
+        u_cam = cam - X[k]
+        u_cam = u_cam / np.linalg.norm(u_cam)
+        part = np.flatnonzero(pairs[k])
+        part = part[part != k]
+        U = X[part] - X[k]
+        U = U / np.linalg.norm(U, axis=1)[:, None] if len(part) else np.zeros((0, 3))
+        n = grp[k]
+        if np.isfinite(n).all():
+            n = n if n @ u_cam > 0 else -n
+            if n @ u_cam > min_cos and (not len(U) or np.min(U @ n) > min_cos):
+                out[k] = n
+                src.append("plane fit (start)")
+                continue
+        b = u_cam + (U.mean(axis=0) if len(U) else 0.0)
+        out[k] = b / np.linalg.norm(b)
+        src.append("facing the camera and its second-bounce partners (start)")
+    return out, src

@@ -3,7 +3,7 @@
 Frames: when the capture gives the visible points (``observed_xyz``, a relay wall, a calibrated
 camera) positions are in the capture's frame (``frame = "capture"``); otherwise the source sits
 at the origin and the frame is fixed only up to a rotation/reflection about it (``frame =
-"source-origin"``; compare by Procrustes, see ``report.procrustes``).
+"source-origin"``; compare by Procrustes, see ``stircasadi.report.alignment``).
 
 Distances: ``distances[a, b]`` is the estimated distance between patches ``ids[a]`` and
 ``ids[b]`` (NaN where nothing measured it) and ``eps[a, b]`` its error bound at confidence
@@ -16,27 +16,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..report import jsonable
+
 import numpy as np
 
 __all__ = ["GeometryEstimate", "StageStats"]
-
-
-def _jsonable(x: Any) -> Any:
-    """NumPy -> plain Python, NaN/inf -> None (JSON has neither)."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    return x
 
 
 def _arr(x, shape_tail=None, fill=np.nan) -> np.ndarray:
@@ -60,7 +44,7 @@ class StageStats:
         d = {"status": self.status, "success": self.success, "iterations": int(self.iterations),
              "wall_time_s": float(self.wall_time_s)}
         d.update(self.extra)
-        return _jsonable(d)
+        return jsonable(d)
 
 
 @dataclass
@@ -162,7 +146,7 @@ class GeometryEstimate:
             "ambiguities": self.ambiguities,
             "success": self.success,
         }
-        return _jsonable(out)
+        return jsonable(out)
 
     def to_json(self, path=None, indent: int = 1) -> str:
         text = json.dumps(self.to_json_dict(), indent=indent)

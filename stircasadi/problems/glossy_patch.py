@@ -11,6 +11,8 @@ from stircasadi.problems._common import gaussian_sensor, unit
 
 NAME = "glossy_patch"
 DESCRIPTION = "One glossy (modified Phong) patch among four Lambertian ones; a reflectance twin with known geometry."
+#: ``stircasadi run`` exercises the reflectance stage only: the problem gives the visible geometry
+ESTIMATE = {"stage": "reflectance", "brdf": "phong"}
 GLOSSY = Phong(albedo=0.3, specular=0.5, exponent=8.0)
 
 

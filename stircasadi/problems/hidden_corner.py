@@ -21,6 +21,8 @@ NAME = "hidden_corner"
 DESCRIPTION = "Fig. 12: a flatland corner, 2 visible and 2 hidden patches, calibrated camera (the default)."
 N_HIDDEN = 2
 NOISE_REL = 1e-6
+#: what the experimenter knows and declares (written to the capture's priors/ group)
+PRIORS = {"flatland": True}
 
 
 def build_scene() -> Scene:

@@ -14,6 +14,8 @@ from stircasadi.problems._common import gaussian_sensor, plane_patches, unit
 
 NAME = "lambertian_walls"
 DESCRIPTION = "N Lambertian patches on the two walls of a room corner; a reflectance twin with known geometry."
+#: ``stircasadi run`` exercises the reflectance stage only: the problem gives the visible geometry
+ESTIMATE = {"stage": "reflectance"}
 SPAN = 0.6      # metres covered by each wall's patches
 AREA = 0.004
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..brdf import Mirror, Phong
 from ..errors import TransportError
-from ..radiometry import cosines, form_factor, source_irradiance
+from ..radiometry import direct_leg, mirror_leg, rows, source_irradiance, vec
 from ..scene import Scene
 
 
@@ -250,7 +250,11 @@ class TransportSystem:
 
 
 def scene_legs(scene: Scene) -> Legs:
-    """All legs between patches: direct (facing, unoccluded) and image-source legs via mirrors."""
+    """All legs between patches: direct (facing, unoccluded) and image-source legs via mirrors.
+
+    Lengths, form factors and directions come from ``radiometry.direct_leg`` /
+    ``radiometry.mirror_leg`` (the formulas the symbolic model evaluates too); whether a mirror
+    leg exists is ``Mirror.transfer``'s hit test."""
     z, n, a = scene.positions, scene.normals, scene.areas
     mirror = np.array([isinstance(b, Mirror) for b in scene.brdfs])
     vis = scene.patch_visibility.copy()
@@ -258,12 +262,9 @@ def scene_legs(scene: Scene) -> Legs:
     vis[mirror, :] = False
     vis[:, mirror] = False
     h, k = np.nonzero(vis)
-    vec = z[k] - z[h]
-    d = np.linalg.norm(vec, axis=1)
-    c_h, c_k = cosines(vec, n[h], n[k], d)
-    g = form_factor(a[h], c_h, c_k, d)
-    u = vec / d[:, None]
-    src, dst, length, gg, dout, din, via = [h], [k], [d], [g], [u], [-u], [-np.ones(len(h), int)]
+    leg = direct_leg(vec(z[h]), vec(z[k]), vec(n[h]), vec(n[k]), a[h])
+    src, dst, length, gg, dout, din, via = ([h], [k], [leg.length], [leg.g], [rows(leg.dir_out)],
+                                            [rows(leg.dir_in)], [-np.ones(len(h), int)])
     if mirror.any():
         others = np.flatnonzero(~mirror)
         for m in np.flatnonzero(mirror):
@@ -272,23 +273,19 @@ def scene_legs(scene: Scene) -> Legs:
             hh, kk = hh.ravel(), kk.ravel()
             sel = hh != kk
             hh, kk = hh[sel], kk[sel]
-            hit, plen, fac, hp = Mirror.transfer(z[hh], z[m], n[m], a[m], z[kk], R)
+            hit, _, _, hp = Mirror.transfer(z[hh], z[m], n[m], a[m], z[kk], R)
             if not hit.any():
                 continue
-            hh, kk, plen, fac, hp = hh[hit], kk[hit], plen[hit], fac[hit], hp[hit]
-            v1 = hp - z[hh]
-            u1 = v1 / np.linalg.norm(v1, axis=1)[:, None]
-            v2 = z[kk] - hp
-            u2 = v2 / np.linalg.norm(v2, axis=1)[:, None]
-            ch = np.sum(u1 * n[hh], axis=1)
-            ck = -np.sum(u2 * n[kk], axis=1)
-            keep = (ch > 0) & (ck > 0)
+            hh, kk, hp = hh[hit], kk[hit], hp[hit]
+            ml = mirror_leg(vec(z[hh]), vec(z[kk]), vec(n[hh]), vec(n[kk]), a[hh],
+                            vec(np.broadcast_to(z[m], (len(hh), 3))),
+                            vec(np.broadcast_to(n[m], (len(hh), 3))), R)
+            keep = (np.asarray(ml.g) > 0)
             if scene.needs_occlusion and keep.any():
                 idx = np.flatnonzero(keep)
                 clear = scene.segments_clear(z[hh[idx]], hp[idx]) & scene.segments_clear(hp[idx], z[kk[idx]])
                 keep[idx[~clear]] = False
-            hh, kk, plen, fac, u1, u2, ch, ck = (x[keep] for x in (hh, kk, plen, fac, u1, u2, ch, ck))
-            src.append(hh); dst.append(kk); length.append(plen)
-            gg.append(fac * form_factor(a[hh], ch, ck, plen)); dout.append(u1); din.append(-u2)
-            via.append(np.full(len(hh), m))
+            src.append(hh[keep]); dst.append(kk[keep]); length.append(np.asarray(ml.length)[keep])
+            gg.append(np.asarray(ml.g)[keep]); dout.append(rows(ml.dir_out)[keep])
+            din.append(rows(ml.dir_in)[keep]); via.append(np.full(int(keep.sum()), m))
     return Legs(*(np.concatenate(x) for x in (src, dst, length, gg, dout, din, via)))

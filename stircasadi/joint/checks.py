@@ -1,0 +1,162 @@
+"""Self-checks of an estimate against the data — no truth needed (a result carries its verdict).
+
+Each check returns ``Check(name, passed, value, limit, message)``; any failure makes the
+estimate UNRELIABLE (``success`` false, non-zero exit). The checks:
+
+* ``solver``: every solve converged.
+* ``chi2``: the whitened residual chi2/dof of the final fit is below ``chi2_max`` (between its
+  noise level and the limit the std were inflated by sqrt(chi2/dof), see ``uncertainty``).
+* ``trace-residuals``: no trace's whitened chi2 exceeds the chi-square quantile of
+  1 - trace_p / n_traces (a swapped or corrupted trace, a return the model misplaces).
+* ``unexplained-returns``: the residual's matched filter (the impulse response) stays below
+  ``unexplained_k`` noise std on every trace and bin, inside and outside the modelled windows.
+* ``reciprocity``: with source and camera at one point the STIR is symmetric (Helmholtz), so
+  traces (i, j) and (j, i) must agree within their noise: a model-free test of the data and of
+  the id bookkeeping.
+* ``plausibility``: every first-bounce path is positive and the scene fits in ``max_extent_m``;
+  the impulse response is between 0.1 mm and 3 m of path (10 ns) wide (a bin width given in the
+  wrong unit shows here).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+__all__ = ["Check", "run_checks", "capture_checks"]
+
+MAX_EXTENT_M = 1000.0
+IRF_FWHM_RANGE_M = (1e-4, 3.0)
+
+
+@dataclass
+class Check:
+    name: str
+    passed: bool
+    value: float
+    limit: float
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "passed": bool(self.passed), "value": float(self.value),
+                "limit": float(self.limit), "message": self.message}
+
+
+def capture_checks(view) -> list[Check]:
+    """Checks on the capture alone (before any fit): the impulse response's width."""
+    out = []
+    fw = float(getattr(view.irf, "fwhm", 0.0) or 0.0)
+    if fw > 0:
+        lo, hi = IRF_FWHM_RANGE_M
+        ok = lo <= fw <= hi
+        out.append(Check("plausibility", ok, fw, hi,
+                         f"impulse response FWHM {fw:.4g} m of path ({fw / 299792458.0 * 1e12:.4g} ps)"
+                         + ("" if ok else f" is outside [{lo:g}, {hi:g}] m: is the bin width "
+                            f"({view.grid.bin_width:g} m) in the right unit?")))
+    return out
+
+
+def _reciprocity(view, nlp, k_lim, p, model_stir) -> Check | None:
+    """Traces (i, j) and (j, i) compared on the bins where the fitted model predicts light (the
+    bins are chosen without looking at the data's noise, so the test is unbiased)."""
+    if not view.colocated or view.capture.stir is None:
+        return None
+    stir = view.capture.stir
+    ill, obs = list(view.ill), list(view.obs)
+    both = [i for i in ill if i in obs]
+    stats = []
+    for a in range(len(both)):
+        for b in range(a + 1, len(both)):
+            i, j = both[a], both[b]
+            yij = stir[ill.index(i), obs.index(j)]
+            yji = stir[ill.index(j), obs.index(i)]
+            mij = model_stir[ill.index(i), obs.index(j)]
+            mji = model_stir[ill.index(j), obs.index(i)]
+            sd = np.broadcast_to(nlp.bin_std(0.5 * (mij + mji)), mij.shape)
+            sel = (np.abs(mij) > sd) | (np.abs(mji) > sd)
+            if sel.sum() < 3:
+                continue
+            d = (yij[sel] - yji[sel]) / (np.sqrt(2.0) * sd[sel])
+            stats.append((float(d @ d), int(sel.sum()), (int(i), int(j))))
+    if not stats:
+        return None
+    n = len(stats)
+    pv = [chi2_dist.sf(s, k) for s, k, _ in stats]
+    k_min = int(np.argmin(pv))
+    ok = pv[k_min] >= p / n
+    s, k, pair = stats[k_min]
+    return Check("reciprocity", ok, s / k, float(chi2_dist.ppf(1 - p / n, k) / k),
+                 f"traces {pair} and their reciprocal differ by chi2/n = {s / k:.3g} over {k} bins"
+                 + ("" if ok else " — the STIR is not symmetric although source and camera coincide: "
+                    "traces are swapped or mislabelled, or the noise level is wrong"))
+
+
+def run_checks(view, fit, settings, first_paths=None) -> list[Check]:
+    """Every check on a finished joint fit ``fit`` (``joint.fit.FitResult``); ``first_paths``: the
+    first-bounce path lengths the onsets measured (they must be positive)."""
+    cs, us = settings.checks, settings.uncertainty
+    nlp, sol, est = fit.nlp, fit.solution, fit.estimate
+    model = nlp.model
+    out = capture_checks(view)
+    out.append(Check("solver", bool(sol.success), float(sol.iterations), float(nlp.settings.ipopt.max_iter),
+                     f"{sol.solver} status '{sol.status}' after {sol.iterations} iterations"))
+    red = est.chi2_dof
+    out.append(Check("chi2", red <= us.chi2_max, red, us.chi2_max,
+                     f"whitened residual chi2/dof = {red:.4g} over {est.dof} degrees of freedom "
+                     f"(noise sigma {nlp.sigma:.3g}, {nlp.sigma_source})"
+                     + ("" if red <= us.chi2_max else ": the model does not explain the data")))
+    # per-trace whitened chi2 on the modelled bins
+    r = nlp.whitened_residuals(sol.x)
+    tr = model.support_trace
+    n_tr = int(tr.max()) + 1 if len(tr) else 0
+    c2 = np.bincount(tr, r * r, minlength=n_tr)
+    nb = np.bincount(tr, minlength=n_tr)
+    has = nb > 0
+    if has.any():
+        p_tr = chi2_dist.sf(c2[has], nb[has])
+        n_has = int(has.sum())
+        worst = int(np.argmin(p_tr))
+        t_idx = np.flatnonzero(has)[worst]
+        ri, ci = divmod(int(t_idx), len(view.obs))
+        ok = p_tr[worst] >= cs.trace_p / n_has
+        n_bad = int(np.sum(p_tr < cs.trace_p / n_has))
+        out.append(Check("trace-residuals", ok, float(c2[t_idx] / nb[t_idx]),
+                         float(chi2_dist.ppf(1 - cs.trace_p / n_has, nb[t_idx]) / nb[t_idx]),
+                         f"worst trace (pulse at {int(view.ill[ri])}, seen from {int(view.obs[ci])}): "
+                         f"chi2/n = {c2[t_idx] / nb[t_idx]:.3g} over {int(nb[t_idx])} bins"
+                         + ("" if ok else f"; {n_bad} traces are not explained by the model")))
+    # returns left in the residual anywhere (the matched filter of the impulse response)
+    tmpl = view.template
+    stir = view.capture.stir
+    pred = model.simulate(sol.x[:model.n_x])
+    if tmpl is not None:
+        from .search import matched_filters
+
+        R = nlp.whiten(stir, pred)
+        mf, e, _ = matched_filters(R.reshape(-1, stir.shape[-1]), tmpl, view.grid)
+        z = mf / np.sqrt(e)
+        zmax = float(z.max()) if z.size else 0.0
+        t_idx, k = np.unravel_index(int(np.argmax(z)), z.shape) if z.size else (0, 0)
+        ri, ci = divmod(int(t_idx), len(view.obs))
+        n_sig = int(np.sum(np.any(z > cs.unexplained_k, axis=1)))
+        ok = zmax <= cs.unexplained_k
+        out.append(Check("unexplained-returns", ok, zmax, cs.unexplained_k,
+                         f"largest residual return {zmax:.3g} noise std (pulse at {int(view.ill[ri])}, "
+                         f"seen from {int(view.obs[ci])}, path {view.grid.centres[k]:.4g} m)"
+                         + ("" if ok else f"; {n_sig} traces hold returns no modelled patch explains")))
+    rc = _reciprocity(view, nlp, cs.reciprocity_k, cs.trace_p, pred)
+    if rc is not None:
+        out.append(rc)
+    # plausibility of the geometry
+    z_ = est.values["position"]
+    leg = np.linalg.norm(z_ - view.source, axis=1)
+    ext = float(np.max(np.linalg.norm(z_ - z_.mean(axis=0), axis=1))) if len(z_) else 0.0
+    first = np.asarray(first_paths, float) if first_paths is not None else leg
+    first = first[np.isfinite(first)]
+    ok = bool(np.all(np.isfinite(leg)) and ext <= MAX_EXTENT_M and np.all(first > 0))
+    out.append(Check("plausibility", ok, ext, MAX_EXTENT_M,
+                     f"scene extent {ext:.4g} m, source legs {leg.min():.4g}-{leg.max():.4g} m"
+                     + (f", shortest first-bounce path {first.min():.4g} m" if len(first) else "")
+                     + ("" if ok else ": implausible geometry (is the time axis' start or unit right?)")))
+    return out

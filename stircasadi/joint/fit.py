@@ -1,0 +1,216 @@
+"""The joint fit: known patches first, then hidden patches added while the data ask for them.
+
+1. Fit the visible patches (``policy.plan_model`` with no hidden patch) to the whole STIR.
+2. Search the whitened residual for the best hidden point (``search.search``), add a hidden
+   patch there, refit everything, and keep it when the whitened chi2 drops by more than the
+   chi-square quantile of 1 - ``search.p_value`` for the unknowns it adds (a likelihood-ratio
+   test); repeat. ``n_hidden`` (``--hidden N``) fixes the number instead.
+3. The last accepted model is the estimate: ``result.assemble`` gives every number with its
+   Cramér-Rao std (inflated by sqrt(chi2/dof) on a mismatch) and identifiability.
+
+The noise level is the capture's when given and consistent with the data's off-model bins
+(else the larger of the two, noted), or estimated from the data.
+"""
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..errors import SolverError
+from ..progress import get_logger
+from .lm import solve_lm
+from .nlp import JointNLP
+from .policy import HiddenStart, VisibleStart, plan_model
+from .result import assemble
+from .search import search
+from .solve import Solution, solve_nlp
+
+__all__ = ["FitResult", "fit_joint", "fit_model", "noise_level", "lr_threshold"]
+
+log = get_logger(__name__)
+
+
+@dataclass
+class FitResult:
+    estimate: object
+    plan: object
+    nlp: object
+    solution: Solution
+    history: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    sigma: float = 0.0
+    sigma_source: str = ""
+
+
+def noise_level(view, support=None) -> tuple[float, str, list]:
+    """(sigma, source, notes): the capture's noise std checked against the data, or the data's.
+
+    The data's estimate is the robust std (MAD) of the bins no modelled path reaches (``support``
+    = flat indices of the modelled bins), else of the traces' first differences."""
+    from ..view import noise_from_data
+
+    stir = view.capture.stir
+    notes = []
+    data = None
+    if support is not None:
+        mask = np.ones(stir.size, bool)
+        mask[support] = False
+        off = stir.reshape(-1)[mask]
+        if off.size >= 200:
+            med = np.median(off)
+            data = float(np.median(np.abs(off - med)) / 0.6745)
+    if data is None or data == 0.0:
+        data = noise_from_data(stir.reshape(-1, stir.shape[-1]))
+    if data == 0.0:  # quantised or noise-free data: the rms of the off-model bins, else a floor
+        peak = float(np.max(np.abs(stir))) or 1.0
+        rms = float(np.sqrt(np.mean(off ** 2))) if support is not None and off.size else 0.0
+        data = rms if rms > 0 else 1e-8 * peak
+        notes.append("the data show no measurable noise (quantised or noise-free); sigma "
+                     f"{data:.3g} = {'the rms of the bins no path reaches' if rms > 0 else '1e-8 of the peak'}")
+    cap = view.capture_sigma
+    if cap:
+        if data > 1.5 * cap:
+            notes.append(f"the capture's noise sigma {cap:.3g} is below the data's {data:.3g}; the "
+                         "larger is used")
+            return data, "data (the capture's sigma is too small)", notes
+        return cap, "capture", notes
+    return data, "estimated from the data", notes
+
+
+def fit_model(model, stir, settings=None, noise: dict | None = None, sigma=None, warm=None,
+              x0=None):
+    """Solve one set-up model against a STIR and return its ``JointEstimate`` (twin experiments
+    and user-built models; ``fit_joint`` is the full route with the hidden-patch search).
+    ``warm``: a previous estimate (its solution restarts IPOPT)."""
+    from .settings import EstimateSettings
+
+    nlp = JointNLP(model, stir, settings or EstimateSettings(), sigma=sigma, noise=noise)
+    w = warm.extra["solution"] if warm is not None else None
+    sol = solve_lm(nlp, x0=x0) if nlp.settings.solver == "lm" else solve_nlp(nlp, x0=x0, warm=w)
+    est = assemble(nlp, sol, model.names)
+    est.extra["nlp"] = nlp
+    return est
+
+
+def _solve(nlp, warm=None):
+    """Solve with the unknowns the data cannot separate held at their start (``degenerate``);
+    they are reported unidentified (``nlp.frozen``)."""
+    from .uncertainty import degenerate
+
+    nlp.frozen = degenerate(nlp, nlp.x0)
+    if nlp.frozen:
+        nlp.lbx = nlp.lbx.copy()
+        nlp.ubx = nlp.ubx.copy()
+        nlp.lbx[nlp.frozen] = nlp.ubx[nlp.frozen] = np.clip(nlp.x0[nlp.frozen], nlp.lbx[nlp.frozen],
+                                                              nlp.ubx[nlp.frozen])
+    if nlp.settings.solver == "lm":
+        return solve_lm(nlp)
+    return solve_nlp(nlp, warm=warm)
+
+
+def _model_chi2(nlp, x, stir) -> float:
+    """Whitened chi2 of ``nlp``'s model at x over every bin of the STIR."""
+    r = nlp.whiten(stir, nlp.model.simulate(x[:nlp.model.n_x]))
+    return float(np.sum(r * r))
+
+
+def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
+              brdf: str = "lambertian", hidden_starts: list | None = None) -> FitResult:
+    """Fit the capture ``view`` from the visible ``start`` (see the module docstring).
+
+    The hidden-patch search tests each candidate in a quick model (the known patches held at
+    their fitted values, the candidate a point patch); the accepted ones then enter the final
+    joint fit with everything free."""
+    from .policy import flatland_plane
+
+    stir = view.capture.stir
+    hidden: list[HiddenStart] = list(hidden_starts or [])
+    t0 = time.perf_counter()
+    noise = dict(view.capture.noise or {})
+    if view.noise_model == "poisson" and settings.cost.likelihood == "gaussian":
+        # photon counts: least squares weighted by the Poisson variance (counts per STIR unit)
+        settings = copy.deepcopy(settings)
+        settings.cost.weighting = "counts"
+        noise["scale"] = float(noise.get("scale") or 1.0)
+    plan = plan_model(view, start, settings, hidden, brdf=brdf, bounces=settings.bounces)
+    sigma, s_src, notes = noise_level(view, plan.model.support)
+    if view.noise_model == "poisson":
+        sigma, s_src = 1.0 / noise["scale"], "Poisson counts (variance = mean)"
+    notes = plan.notes + notes
+
+    def make_nlp(pl):
+        nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge)
+        return nlp_
+
+    nlp = make_nlp(plan)
+    sol = _solve(nlp)
+    M = len(view.ids)
+    chi2_cur = _model_chi2(nlp, sol.x, stir)
+    history = [{"n_hidden": len(hidden), "chi2": chi2_cur, "status": sol.status,
+                "wall_time_s": time.perf_counter() - t0}]
+    log.info(f"fit of the visible patches: chi2/dof {chi2_cur / stir.size:.3g} over all bins "
+             f"({sol.status}, {sol.iterations} iterations)")
+    th = plan.model.theta(sol.x[:plan.model.n_x])
+    vis_start = VisibleStart(th["position"][:M], start.position_std, th["normal"][:M],
+                             th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"])
+    cur_nlp, cur_x = nlp, sol.x
+    plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
+    want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
+        and view.template is not None
+    max_h = settings.search.max_hidden if n_hidden is None else n_hidden
+    tmpl = view.template
+    while want_search and len(hidden) < max_h:
+        R = cur_nlp.whiten(stir, cur_nlp.model.simulate(cur_x[:cur_nlp.model.n_x]))
+        cand = search(R, view, vis_start.positions, vis_start.normals,
+                      np.clip(vis_start.albedo, 0.05, 1.0), tmpl,
+                      step=settings.search.grid_step_irf * tmpl.width,
+                      max_traces=settings.search.max_traces,
+                      exclude=np.array([h.position for h in hidden]) if hidden else None, plane=plane)
+        if cand is None:
+            break
+        hs = HiddenStart(cand.position, cand.normal, albedo_area=float(np.clip(cand.beta / 0.25, 1e-6, 0.5)))
+        try:
+            planq = plan_model(view, vis_start, settings, hidden + [hs], brdf=brdf, fixed_visible=True,
+                               extended=False)
+            nlpq = make_nlp(planq)
+            solq = _solve(nlpq)
+        except SolverError as exc:
+            notes.append(f"a hidden candidate at {np.round(cand.position, 3).tolist()} could not be fitted "
+                         f"({exc.status}); the search stopped there")
+            break
+        chi2_q = _model_chi2(nlpq, solq.x, stir)
+        k_add = 3 + (2 if plane is None else 0)     # position, normal, albedo x area of one point
+        thr = lr_threshold(settings.search.p_value, k_add)
+        gain = chi2_cur - chi2_q
+        log.info(f"hidden candidate {len(hidden) + 1} at {np.round(cand.position, 3).tolist()} "
+                 f"(T = {cand.statistic:.3g}): chi2 drop {gain:.4g} vs threshold {thr:.3g}")
+        if not solq.success or (n_hidden is None and gain <= thr):
+            break
+        thq = planq.model.theta(solq.x[:planq.model.n_x])
+        hidden = [HiddenStart(thq["position"][M + j], thq["normal"][M + j], float(thq["albedo"][M + j]),
+                              4e-4, "search") for j in range(len(hidden) + 1)]
+        cur_nlp, cur_x, chi2_cur = nlpq, solq.x, chi2_q
+        history.append({"n_hidden": len(hidden), "chi2": chi2_q, "chi2_drop": gain, "threshold": thr,
+                        "statistic": cand.statistic, "status": solq.status,
+                        "wall_time_s": time.perf_counter() - t0})
+    if n_hidden is not None and len(hidden) < n_hidden:
+        notes.append(f"--hidden {n_hidden}: only {len(hidden)} hidden patches could be placed")
+    if hidden:  # the final joint fit: everything free, hidden patches as discs
+        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=settings.bounces)
+        nlp = make_nlp(plan)
+        sol = _solve(nlp)
+        history.append({"n_hidden": len(hidden), "final": True,
+                        "chi2": _model_chi2(nlp, sol.x, stir), "status": sol.status,
+                        "wall_time_s": time.perf_counter() - t0})
+    est = assemble(nlp, sol, plan.names, given=plan.given)
+    est.extra["search_history"] = history
+    return FitResult(est, plan, nlp, sol, history, notes, sigma, s_src)
+
+
+def lr_threshold(p: float, k: int) -> float:
+    """chi-square quantile of 1 - p with k degrees of freedom (the search's acceptance level)."""
+    return float(chi2_dist.ppf(1.0 - p, max(k, 1)))
