@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from stircasadi.report import procrustes_matrix
 from stircasadi.testing import (assert_coverage, assert_within_sigma, compare, coverage_interval,
-                                nominal_coverage, procrustes_about)
+                                nominal_coverage)
 
 RNG = np.random.default_rng(20240601)
 P_TRUE = np.array([[0.3, 0.0, 1.0], [-0.3, 0.1, 1.1], [0.0, -0.3, 1.0], [0.2, 0.25, 1.3],
@@ -178,12 +179,12 @@ def test_bad_inputs_are_refused_with_the_reason(tmp_path):
         compare(tmp_path / "bad.json", truth())
 
 
-def test_procrustes_about_ignores_rows_with_nan():
+def test_procrustes_ignores_rows_with_nan():
     R = random_orthogonal(False)
     A = RNG.normal(size=(6, 3))
     B = A @ R
     A[2] = np.nan
-    assert np.allclose(procrustes_about(A, B), R, atol=1e-12)
+    assert np.allclose(procrustes_matrix(A, B), R, atol=1e-12)
 
 
 # ---------------------------------------------------------------------------------- assertions

@@ -7,7 +7,7 @@ solver factors (``solver``, ``tol``, ``max_iter``, ``model_bounces``) onto the e
 settings object and calls the public entry point ``stircasadi.pipeline.estimate_capture``.
 When the estimator's settings change, only ``estimator_settings`` changes.
 
-Mapping (onto ``stircasadi.estimate.settings.EstimateSettings`` today):
+Mapping (onto ``stircasadi.joint.settings.EstimateSettings``, the estimator's settings):
 
 =====================  =====================================================
 factor                  setting
@@ -41,7 +41,7 @@ def estimator_settings(params: dict):
     """The estimator's settings object for a cell's solver factors, or None for its defaults."""
     if not any(k in params for k in SOLVER_KEYS):
         return None
-    from ..estimate.settings import EstimateSettings
+    from ..joint.settings import EstimateSettings
 
     s = EstimateSettings()
     solver = params.get("solver")
@@ -86,7 +86,9 @@ def _honoured(params: dict, stages: list[dict]):
 
 
 def run_estimate(capture, params: dict):
-    """Estimate ``capture`` with the cell's factors; returns (EstimateResult, info dict).
+    """Estimate ``capture`` (without its truth) with the cell's factors; returns
+    (EstimateResult, info dict). ``params["declared_areas"]`` ({id: m^2}, set by the cell from
+    the truth when the factor ``areas`` is ``"truth"``) is passed as the user's declared areas.
 
     ``info``: ``solver_reported`` (what the result's stages name), ``settings_honoured``.
     """
@@ -94,9 +96,7 @@ def run_estimate(capture, params: dict):
 
     settings = estimator_settings(params)
     hidden = params.get("hidden", "auto")
-    areas = None
-    if params.get("areas") == "truth":
-        areas = None if capture.truth is None else capture.truth.get("areas")
+    areas = params.get("declared_areas")
     result = estimate_capture(capture, hidden=None if hidden == "auto" else int(hidden),
                               brdf=params.get("brdf", "lambertian"), areas=areas, settings=settings)
     stages = _solver_stages(result.to_json_dict())

@@ -319,8 +319,12 @@ def run_cell(params: dict, sigma_limit: float = 4.0, keep_estimate: bool = False
             if params.get("estimate", True):
                 rec["stage"] = "estimate"
                 t = time.perf_counter()
+                est_params = dict(params)
+                if params.get("areas") == "truth":  # declared by the user, as --areas would
+                    est_params["declared_areas"] = {int(i): float(cap.truth["areas"][i])
+                                                    for i in np.asarray(cap.obs_ids)}
                 try:
-                    res, info = run_estimate(dataclasses.replace(cap, truth=None), params)
+                    res, info = run_estimate(dataclasses.replace(cap, truth=None), est_params)
                 finally:
                     m["estimate_s"] = time.perf_counter() - t
                 rec["stage"] = "measure"

@@ -35,6 +35,8 @@ def add_parsers(sub) -> None:
     g.add_argument("--workers", type=int, default=None, help="LocalCluster workers (default: one per core)")
     g.add_argument("--serial", action="store_true", help="run in this process, no Dask")
     g.add_argument("--scheduler", default=None, help="address of a running Dask scheduler")
+    s.add_argument("--memory-limit", default=None,
+                   help="memory of each local worker, e.g. 4GB (a cell beyond it is recorded as failed)")
     s.add_argument("--retry-failed", action="store_true", help="recompute cached cells that failed")
     s.add_argument("--fresh", action="store_true", help="ignore the cache, recompute every cell")
     s.add_argument("--keep-estimates", action="store_true", help="keep each estimate.json in its record")
@@ -94,7 +96,7 @@ def cmd_study(args) -> int:
     settings = RunSettings(scheduler=args.scheduler, workers=0 if args.serial else args.workers,
                            retry_failed=args.retry_failed, fresh=args.fresh,
                            keep_estimates=args.keep_estimates, figures=not args.no_figures,
-                           cached_only=args.cached_only)
+                           cached_only=args.cached_only, memory_limit=args.memory_limit)
     signal.signal(signal.SIGTERM, _terminate)  # a kill stops the study like Ctrl-C: cache kept
     try:
         res = run_study(args.spec, args.out, size=args.size, settings=settings)

@@ -18,6 +18,8 @@ camera, nine patches on three planes, a relay wall with two hidden squares) comp
 * ``dynamic_range``: a small hidden patch whose third bounce is about 1e-6 of the direct peak,
   with noise 30 times below that return.
 * ``hidden_near_wall``: a hidden patch 1 mm behind the plane of a visible patch.
+* ``screened_pair``: three patches, a screen blocks the second bounces of one pair (the small
+  occluded scene of the ``effects`` study).
 * ``missing_onsets`` is a study factor (``drop_direct``), ``SNR 0-5 dB`` is ``snr_db``: both act
   on any scene.
 
@@ -111,12 +113,27 @@ def hidden_near_wall(gap: float = 0.001, noise: float = 1e-6):
     return scene, fit_grid(scene), paper_sensor(noise, calibrated_camera=True)
 
 
+def screened_pair(noise: float = 1e-5):
+    """The paper's three patches with a screen between P1 and P2: their second bounces are
+    blocked, the camera still sees all three (a small scene that calls for occlusion tests)."""
+    import trimesh
+
+    from ..problems import three_patch
+
+    base = three_patch.build_scene()
+    screen = trimesh.creation.box(extents=(0.02, 0.3, 0.3))
+    screen.apply_translation(0.5 * (base.positions[0] + base.positions[1]))
+    scene = Scene(base.patches, occluders=screen, name="screened_pair")
+    return scene, three_patch.build_grid(), paper_sensor(noise)
+
+
 HARD_CASES = {
     "equal_paths_visible": equal_paths_visible,
     "grazing": grazing,
     "albedo_0999": albedo_0999,
     "dynamic_range": dynamic_range,
     "hidden_near_wall": hidden_near_wall,
+    "screened_pair": screened_pair,
 }
 
 

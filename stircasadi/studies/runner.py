@@ -61,6 +61,9 @@ class RunSettings:
     """Keep each cell's estimate.json dict in its record."""
     figures: bool = True
     """Draw the pictures at the end."""
+    memory_limit: str | None = None
+    """Memory of each LocalCluster worker (``"4GB"``); a worker that exceeds it is restarted and
+    its cell recorded as failed (``KilledWorker``). None: the machine's memory / workers."""
     cached_only: bool = False
     """Compute nothing: write the tables and pictures of the cells already cached (the others
     are counted as missing in the provenance)."""
@@ -92,8 +95,9 @@ def default_workers() -> int:
 
 
 @contextlib.contextmanager
-def local_cluster(n_workers: int):
-    """A loopback-only LocalCluster of ``n_workers`` single-threaded processes (BLAS pinned)."""
+def local_cluster(n_workers: int, memory_limit: str | None = None):
+    """A loopback-only LocalCluster of ``n_workers`` single-threaded processes (BLAS pinned,
+    each under ``memory_limit``; a cell that kills its worker is not retried elsewhere)."""
     try:
         import dask
         from distributed import Client, LocalCluster
@@ -103,10 +107,12 @@ def local_cluster(n_workers: int):
     for k, v in BLAS_ENV.items():  # inherited by the worker processes
         os.environ.setdefault(k, v)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": dict(BLAS_ENV),
-                          "distributed.worker.daemon": False, "logging.distributed": "error"}):
+                          "distributed.worker.daemon": False, "logging.distributed": "error",
+                          "distributed.scheduler.allowed-failures": 0}):
         try:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                   host="127.0.0.1", dashboard_address=None, env=dict(BLAS_ENV))
+                                   host="127.0.0.1", dashboard_address=None, env=dict(BLAS_ENV),
+                                   memory_limit=memory_limit or "auto")
         except RuntimeError as exc:  # "Nanny failed to start": the workers could not spawn
             raise StudyError(
                 f"The local Dask workers did not start ({exc}). A script that calls run_study must "
@@ -225,7 +231,7 @@ def run_study(spec, out, size: str | None = None, settings: RunSettings | None =
                 finish(k, run_cell(c, study.sigma_limit, settings.keep_estimates), 0)
         else:
             ctx = _remote(settings.scheduler) if settings.scheduler else local_cluster(
-                settings.workers or default_workers())
+                settings.workers or default_workers(), settings.memory_limit)
             with ctx as client:
                 run_info["workers"] = _worker_info(client)
                 _run_dask(client, todo, study, settings, finish)

@@ -23,6 +23,10 @@ Write a study as a TOML or YAML file (or build a ``Study`` in Python) and run it
     label = "grazing"
     scene = "hard:grazing"
 
+    [[exclude]]              # optional: drop design points matching all these values
+    label = "grazing"
+    solver = "lm-ad"
+
     [sizes.smoke]            # a named size: overrides for a quick run (--size smoke)
     repetitions = 1
     factors.noise = [1e-4]
@@ -51,7 +55,7 @@ __all__ = ["Study", "load_study", "builtin_studies", "MEASURES"]
 
 MEASURES = ("errors", "coverage", "iterations", "time", "memory", "flags", "effects")
 _TOP = {"name", "description", "repetitions", "seed", "measures", "sigma_limit", "base", "factors",
-        "cases", "sizes", "figures"}
+        "cases", "exclude", "sizes", "figures"}
 
 
 @dataclass
@@ -68,6 +72,9 @@ class Study:
     """factor name -> list of values, crossed in full."""
     cases: list = field(default_factory=list)
     """Explicit cells (dicts of factor values), each crossed with ``factors``."""
+    exclude: list = field(default_factory=list)
+    """Partial cells (dicts of factor values): a design point matching every value of one of
+    them is dropped (e.g. a combination that does not finish)."""
     repetitions: int = 1
     """Noise draws per design point."""
     seed: int = 0
@@ -103,7 +110,8 @@ class Study:
             d["name"] = f"{d['name']}" + (f"@{size}" if size else "")
         study = cls(name=str(d["name"]), description=str(d.get("description", "")),
                     base=dict(d.get("base") or {}), factors=dict(d.get("factors") or {}),
-                    cases=list(d.get("cases") or []), repetitions=d.get("repetitions", 1),
+                    cases=list(d.get("cases") or []), exclude=list(d.get("exclude") or []),
+                    repetitions=d.get("repetitions", 1),
                     seed=d.get("seed", 0), measures=tuple(d.get("measures", MEASURES)),
                     sigma_limit=d.get("sigma_limit", 4.0), sizes=sizes,
                     figures=dict(d.get("figures") or {}))
@@ -152,7 +160,8 @@ class Study:
                                  f"got {v!r}. A single value goes under [base].")
             for x in v:
                 check_factor(k, x)
-        for where, d in [("base", self.base)] + [(f"cases[{i}]", c) for i, c in enumerate(self.cases)]:
+        for where, d in ([("base", self.base)] + [(f"cases[{i}]", c) for i, c in enumerate(self.cases)]
+                         + [(f"exclude[{i}]", c) for i, c in enumerate(self.exclude)]):
             if not isinstance(d, dict):
                 raise StudyError(f"{where} must be a table of factor values; got {type(d).__name__}.")
             for k, v in d.items():
@@ -174,7 +183,8 @@ class Study:
         for case in (self.cases or [{}]):
             for combo in combos:
                 p = {**self.base, **case, **dict(zip(names, combo))}
-                out.append(p)
+                if not any(all(k in p and p[k] == v for k, v in ex.items()) for ex in self.exclude):
+                    out.append(p)
         return out
 
     def cells(self) -> list[dict]:
@@ -191,15 +201,16 @@ class Study:
     def to_dict(self) -> dict:
         return {"name": self.name, "description": self.description, "repetitions": self.repetitions,
                 "seed": self.seed, "measures": list(self.measures), "sigma_limit": self.sigma_limit,
-                "base": self.base, "factors": self.factors, "cases": self.cases, "figures": self.figures}
+                "base": self.base, "factors": self.factors, "cases": self.cases, "exclude": self.exclude,
+                "figures": self.figures}
 
 
 def _apply_size(d: dict, over: dict) -> dict:
-    allowed = {"repetitions", "seed", "base", "factors", "cases", "keep_cases", "description"}
+    allowed = {"repetitions", "seed", "base", "factors", "cases", "keep_cases", "description", "exclude"}
     unknown = set(over) - allowed
     if unknown:
         raise StudyError(f"Unknown key(s) {sorted(unknown)} in a size; allowed: {sorted(allowed)}.")
-    for k in ("repetitions", "seed", "description", "cases"):
+    for k in ("repetitions", "seed", "description", "cases", "exclude"):
         if k in over:
             d[k] = over[k]
     for k in ("base", "factors"):

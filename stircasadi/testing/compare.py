@@ -35,8 +35,9 @@ visible-position error (3 of 3 M degrees of freedom): visible-position z are sli
 for few patches. Extents of hidden patches (no truth field) are not compared. The matching is
 by position only; a hidden estimate with no position cannot be matched and counts as spurious.
 
-This is the project's truth matcher until ``stircasadi/report.py`` holds the one shared
-implementation; then one calls the other.
+The frame alignment and the matching are ``stircasadi.report.alignment`` and ``.match``, the
+project's one implementation; this module adds the per-number rows, the covariance rotation and
+the coverage semantics the tests and studies use.
 """
 from __future__ import annotations
 
@@ -46,8 +47,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import StircasadiError
+from ..report import alignment, match
 
-__all__ = ["compare", "Comparison", "procrustes_about", "EXACT_TOL"]
+__all__ = ["compare", "Comparison", "EXACT_TOL"]
 
 #: |err| at or below this (in the number's units) counts as exact when no std is reported
 #: (a given input); the same threshold as ``../shared/tools/blind_score.py``.
@@ -166,27 +168,9 @@ class Comparison:
         return "\n".join(lines)
 
 
-def procrustes_about(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Orthogonal Q (rotation or reflection) minimising ||A Q - B||_F over the rows finite in
-    both; A and B are already relative to their fixed points (the source)."""
-    A, B = np.asarray(A, float), np.asarray(B, float)
-    ok = np.isfinite(A).all(axis=1) & np.isfinite(B).all(axis=1)
-    if ok.sum() == 0:
-        return np.eye(3)
-    U, _, Vt = np.linalg.svd(A[ok].T @ B[ok])
-    return U @ Vt
-
-
 def _num(v) -> float:
     """A JSON number as float; ``null`` -> NaN (callers test ``is None`` first where it matters)."""
     return float("nan") if v is None else float(v)
-
-
-def _vec(v) -> np.ndarray | None:
-    """A 3-vector from JSON, or None when absent, malformed or with a null component."""
-    if v is None or len(v) != 3 or any(x is None for x in v):
-        return None
-    return np.array([float(x) for x in v], float)
 
 
 def _truth_parts(truth, source):
@@ -255,54 +239,25 @@ def compare(estimate, truth, source=None, exact_tol: float = EXACT_TOL) -> Compa
     frame = est.get("frame", "source-origin")
     if frame not in ("capture", "source-origin"):
         raise StircasadiError(f"estimate frame must be 'capture' or 'source-origin'; got {frame!r}.")
-    s_est = _vec(est.get("source_xyz")) if frame == "source-origin" else None
-    s_est = np.zeros(3) if s_est is None else s_est
+    # the project's one frame alignment and truth matcher (stircasadi.report)
+    tr_src = {**tr, "source_xyz": s_true}
+    Q, s_est, s_t = alignment(est, tr_src)
+    index = match(est, tr_src)
     patches = list(est.get("patches") or [])
-    matches, spurious = {}, []
-    vis_pairs = []
-    for p in patches:
-        if p.get("visible", True):
-            pid = int(p["id"])
-            if 0 <= pid < M:
-                matches[pid] = pid
-                x = _vec(p.get("position"))
-                if x is not None:
-                    vis_pairs.append((x, P[pid]))
-            else:
-                spurious.append(pid)
-    Q = np.eye(3)
-    if frame == "source-origin" and vis_pairs:
-        A = np.array([a for a, _ in vis_pairs]) - s_est
-        B = np.array([b for _, b in vis_pairs]) - s_true
-        Q = procrustes_about(A, B)
+
+    identity = frame == "capture"   # no arithmetic: a NaN component stays where it is
 
     def to_truth(x):
-        return x if frame == "capture" else (x - s_est) @ Q + s_true
+        return x if identity else (x - s_est) @ Q + s_t
 
-    # hidden patches: Hungarian assignment on aligned distance
-    hid_est = [p for p in patches if not p.get("visible", True)]
-    hid_true = np.flatnonzero(~vis_true)
-    placed = [(p, to_truth(_vec(p.get("position")))) for p in hid_est
-              if _vec(p.get("position")) is not None and np.isfinite(_vec(p.get("position"))).all()]
-    spurious += [int(p["id"]) for p in hid_est if all(p is not q for q, _ in placed)]
-    missed = list(hid_true.tolist())
-    if placed and len(hid_true):
-        from scipy.optimize import linear_sum_assignment
-
-        C = np.linalg.norm(np.array([x for _, x in placed])[:, None, :] - P[hid_true][None], axis=-1)
-        r, c = linear_sum_assignment(C)
-        for a, b in zip(r, c):
-            matches[int(placed[a][0]["id"])] = int(hid_true[b])
-        matched_a = set(r.tolist())
-        spurious += [int(placed[a][0]["id"]) for a in range(len(placed)) if a not in matched_a]
-        missed = [int(hid_true[b]) for b in range(len(hid_true)) if b not in set(c.tolist())]
-    else:
-        spurious += [int(p["id"]) for p, _ in placed]
+    matches = {int(p["id"]): int(i) for p, i in zip(patches, index) if i >= 0}
+    spurious = [int(p["id"]) for p, i in zip(patches, index) if i < 0]
+    missed = [int(h) for h in np.flatnonzero(~vis_true) if int(h) not in set(matches.values())]
 
     blocks = _covariance_blocks(est)
     flagged_all = not bool(est.get("success", False))
     flagged_ids = _flagged_ids(est)
-    comp = Comparison(frame=frame, rotation=Q, matches=matches, missed=missed,
+    comp = Comparison(frame=frame, rotation=np.asarray(Q, float), matches=matches, missed=missed,
                       spurious=sorted(set(spurious)), success=not flagged_all)
     by_id = {int(p["id"]): p for p in patches}
     for pid, ti in matches.items():
@@ -310,7 +265,7 @@ def compare(estimate, truth, source=None, exact_tol: float = EXACT_TOL) -> Compa
         flag = flagged_all or pid in flagged_ids
         _vector_rows(comp, p, pid, ti, "position", P[ti], blocks, Q, to_truth, flag, exact_tol)
         if N is not None:
-            _vector_rows(comp, p, pid, ti, "normal", N[ti], blocks, Q, lambda n: n if frame == "capture" else n @ Q,
+            _vector_rows(comp, p, pid, ti, "normal", N[ti], blocks, Q, lambda n: n if identity else n @ Q,
                          flag, exact_tol)
         for q in _SCALARS:
             t = _truth_scalar(tr, q, ti)
