@@ -171,8 +171,10 @@ def test_tables_and_provenance_round_trip(tmp_path):
     names = {f.name for f in back.figures}
     assert {"accuracy_vs_noise.png", "coverage.png"} <= names
     # every estimated cell's numbers are in the numbers table, tied by cell key
-    ok = back.cells[back.cells["status"] == "ok"]
-    assert len(ok) and set(back.numbers["cell"]) == set(ok["cell"])
+    reported = back.cells[(back.cells["status"] == "ok") & (back.cells["n_numbers"] > 0)]
+    assert len(reported) and set(back.numbers["cell"]) == set(reported["cell"])
+    counts = back.numbers.groupby("cell").size()
+    assert all(counts[c] == n for c, n in zip(reported["cell"], reported["n_numbers"]))
 
 
 def test_cli_runs_a_spec_file_and_reports_failures(tmp_path, capsys):
