@@ -120,7 +120,9 @@ def plot_accuracy_vs_time(res, acc: str = "err_position_m", tcol: str = "estimat
             ax.plot(fx, fy, "k-", lw=1.2, drawstyle="steps-post", label="_Pareto")
             ax.scatter(fx, fy, s=60, facecolors="none", edgecolors="k", lw=1.0)
         ax.set_xscale("log")
-        ax.xaxis.set_minor_formatter(NullFormatter())
+        lo, hi = ax.get_xlim()
+        if hi > 10 * lo:  # minor labels only where the axis spans less than a decade
+            ax.xaxis.set_minor_formatter(NullFormatter())
         if (pts["_acc"] > 0).any():
             ax.set_yscale("log")
         ax.set_xlabel(_LABELS.get(tcol, tcol) + " (median)")

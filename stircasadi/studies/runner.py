@@ -170,8 +170,13 @@ class _Tally:
 def _failed_record(params: dict, exc: BaseException) -> dict:
     from .. import __version__
 
+    msg = str(exc)
+    if type(exc).__name__ == "KilledWorker":
+        msg = ("the worker process died while running this cell: most often it exceeded its memory "
+               "limit (--memory-limit; the worker log says 'exceeded 95% memory budget'), else a "
+               "crash in compiled code. " + msg)
     return {"params": params, "status": "failed", "stage": "worker",
-            "error": {"type": type(exc).__name__, "message": str(exc)[:2000], "traceback": ""},
+            "error": {"type": type(exc).__name__, "message": msg[:2000], "traceback": ""},
             "measures": {"hard_verdict": "FAILED"}, "numbers": [], "worker": "", "version": __version__}
 
 
