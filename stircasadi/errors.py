@@ -90,6 +90,10 @@ class CodeError(StircasadiError, ValueError):
     period shorter than the response, mismatched record lengths)."""
 
 
+class ReconstructionError(StircasadiError, ValueError):
+    """A relay-wall (NLOS) reconstruction cannot run on the given capture or settings."""
+
+
 class StudyError(StircasadiError, ValueError):
     """A study spec is malformed (unknown factor, bad value, empty design) or its output folder
     cannot hold the results."""

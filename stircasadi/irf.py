@@ -345,6 +345,11 @@ def is_gaussian(samples, bin_width: float, tol: float = GAUSSIAN_TOL) -> Gaussia
                           bounds=(math.log(bin_width * 1e-3), math.log(bin_width * len(s))),
                           method="bounded", options={"xatol": 1e-10})
     sigma = math.exp(res.x)
+    # polish: Brent stops at ~sqrt(eps) in log sigma (5e-9 relative), which a 1e-9 noise floor sees
+    from scipy.optimize import least_squares
+    pol = least_squares(lambda ls: binned(math.exp(ls[0])) - s, [math.log(sigma)], xtol=1e-15,
+                        ftol=1e-15, gtol=1e-15, method="lm")
+    sigma = math.exp(float(pol.x[0]))
     if abs(mu) < 0.25 * bin_width and np.max(np.abs(binned(sigma) - s)) <= tol * s.max():
         return GaussianIRF.from_sigma(sigma)
     return None

@@ -63,13 +63,17 @@ def _priors(areas, flatland) -> dict:
 
 
 def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian", areas=None,
-                     flatland: bool | None = None, settings=None) -> EstimateResult:
+                     flatland: bool | None = None, settings=None, method: str | None = None,
+                     out_dir=None) -> EstimateResult:
     """Estimate geometry, reflectance and hidden patches from ``capture`` (see module docstring).
 
     hidden : number of hidden patches to place (None: as many as the data ask for).
     brdf : ``"lambertian"`` or ``"phong"`` (a Phong lobe on every visible patch).
     areas : declared patch areas {id: m^2} (priors; the capture's ``priors/`` group may hold them).
     flatland : every patch lies in the plane of the source and the visible patches (prior).
+    method : relay-wall scans only: ``"relay"`` (default: the first hidden point and plane from
+        onsets), or ``"lct"``, ``"fk"``, ``"bp"``, ``"surface"`` (``stircasadi.nlos``: volumes and
+        a fitted hidden surface, written to ``out_dir`` with their maps, mesh and pictures).
     """
     from .joint.settings import EstimateSettings
 
@@ -81,7 +85,10 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     t0 = time.perf_counter()
     view = CaptureView.of(capture, _priors(areas, flatland))
     if capture.stir is None or not capture.legs_included:
-        return _relay(capture, view, t0)
+        return _relay(capture, view, t0, method, out_dir)
+    if method not in (None, "joint"):
+        raise ModelError(f"method={method!r} is for relay-wall scans (paired or rectified traces); "
+                         "a full STIR with its legs is estimated by the joint fit (method=None).")
     from .geometry import estimate_geometry
     from .joint.checks import run_checks
     from .joint.fit import fit_joint
@@ -93,14 +100,18 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     M = len(view.ids)
     if not np.array_equal(np.asarray(geo.ids[:M]), view.ids):
         raise GeometryError("internal: geometry ids differ from the capture's visible ids")
-    from .geometry.normals import initial_normals
+    from .geometry.normals import flat_groups, initial_normals
 
-    pairs = np.isfinite(geo.distances[:M, :M])
-    np.fill_diagonal(pairs, False)
-    n0, _ = initial_normals(geo.positions[:M], pairs, geo.camera_xyz if geo.camera_xyz is not None
-                            else view.camera, labels=None if geo.plane_labels is None else geo.plane_labels[:M])
-    start = VisibleStart(np.asarray(geo.positions[:M]), np.asarray(geo.position_std[:M]), n0,
-                         pairs=pairs)
+    X = np.asarray(geo.positions[:M])
+    pairs = _second_bounce_pairs(view, geo, X)
+    ps = np.asarray(geo.position_std[:M], float)
+    e = geo.eps[:M, :M][np.isfinite(geo.eps[:M, :M]) & (geo.eps[:M, :M] > 0)]
+    sig = float(np.nanmedian(ps)) if np.isfinite(ps).any() else (
+        float(np.median(e)) / 2.576 if e.size else view.grid.bin_width)
+    labels, gn, gstd = flat_groups(X, pairs, sig)
+    cam = geo.camera_xyz if geo.camera_xyz is not None else view.camera
+    n0, _ = initial_normals(X, pairs, cam, labels=labels)
+    start = VisibleStart(X, ps, n0, pairs=pairs, flat_labels=labels)
     t1 = time.perf_counter()
     fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf)
     t_fit = time.perf_counter() - t1
@@ -146,6 +157,27 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     return EstimateResult(jsonable(out), geometry=geo, fit=fit, view=view)
 
 
+def _second_bounce_pairs(view, geo, X) -> np.ndarray:
+    """(M, M) bool: the pairs whose second bounce the data show — a measured distance that agrees
+    with the placed positions within 5 std plus a bin (a later family detected in its place, a
+    path through a third patch, is longer), and, where a calibrated camera gives the normals,
+    that face each other."""
+    from .radiometry import facing_matrix
+
+    M = len(X)
+    D = np.asarray(geo.distances[:M, :M], float)
+    sd = np.asarray(geo.eps[:M, :M], float) / 2.576
+    geo_d = np.linalg.norm(X[:, None] - X[None], axis=2)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(D) & (np.abs(D - geo_d) <= 5.0 * np.where(np.isfinite(sd), sd, 0.0)
+                               + view.grid.bin_width)
+    np.fill_diagonal(ok, False)
+    n = view.known_normals
+    if np.isfinite(n).all():
+        ok &= facing_matrix(X, n)
+    return ok & ok.T
+
+
 def _covariance(est, patches, ids, plan_names):
     """The joint covariance of the reported (non-null) numbers, named ``quantity[id].x``."""
     keep, names = [], []
@@ -164,10 +196,17 @@ def _covariance(est, patches, ids, plan_names):
     return {"parameters": names, "matrix": C}
 
 
-def _relay(capture, view, t0) -> EstimateResult:
+def _relay(capture, view, t0, method=None, out_dir=None) -> EstimateResult:
     from .geometry.relay import estimate_relay
     from .report import jsonable
 
+    if method not in (None, "relay"):
+        from .nlos import estimate_capture as nlos_estimate
+
+        est = nlos_estimate(capture, method=method, out_dir=out_dir)
+        d = est.to_json_dict()
+        d.setdefault("priors", view.priors)
+        return EstimateResult(jsonable(d), geometry=est, view=view)
     geo = estimate_relay(capture)
     d = geo.to_json_dict()
     d.update({"version": 2, "units": UNITS, "verdict": "OK" if geo.success else "UNRELIABLE",

@@ -133,7 +133,9 @@ def compare(est: dict, truth: dict) -> list[dict]:
         nv = vec(p.get("normal"))
         if Tn is not None and np.isfinite(nv).all():
             nv = nv @ Q
-            ang = float(np.arccos(np.clip(abs(nv @ np.asarray(Tn[i])) / np.linalg.norm(nv), -1, 1)))
+            c_ = abs(nv @ np.asarray(Tn[i])) / np.linalg.norm(nv)
+            # the angle from the cross product (arccos near 1 is ill-conditioned: 1e-8 for equal vectors)
+            ang = float(np.arctan2(np.linalg.norm(np.cross(nv / np.linalg.norm(nv), np.asarray(Tn[i]))), c_))
             ns = p.get("normal_std")
             sd = float(np.linalg.norm(vec(ns))) if ns is not None else np.nan
             z = ang / sd if sd > 0 and np.isfinite(sd) else (0.0 if ang < 1e-9 else np.inf)

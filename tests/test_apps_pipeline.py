@@ -21,6 +21,17 @@ from stircasadi.transport import simulate
 def test_relight_from_the_pipeline_estimate():
     scene, grid, sensor = three_patch.build_scene(), three_patch.build_grid(), three_patch.build_sensor()
     cap = sensor.capture(simulate(scene, grid, sensor=sensor), seed=0)
+    cap.truth = None
+    d0 = estimate_capture(cap).to_json_dict()
+    # an uncalibrated three-patch scene: its normals and albedos are not identified (reported
+    # null), and rendering refuses them by name
+    if any(p.get("normal") is None or p.get("albedo") is None for p in d0["patches"]):
+        with pytest.raises(EstimateInputError, match="is null"):
+            SceneBelief.from_estimate(d0, allow_unreliable=True)
+    # a calibrated camera (pixel rays, normals and footprints) identifies them
+    sensor = Sensor(irf=sensor.irf, noise=sensor.noise, calibrated_camera=True)
+    cap = sensor.capture(simulate(scene, grid, sensor=sensor), seed=0)
+    cap.truth = None
     result = estimate_capture(cap)
     d = result.to_json_dict()
     if not result.success:

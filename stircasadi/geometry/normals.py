@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plane_groups", "estimate_normals"]
+__all__ = ["plane_groups", "estimate_normals", "initial_normals", "flat_groups"]
 
 
 def _fit_plane(P: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -138,3 +138,27 @@ def initial_normals(X: np.ndarray, pairs: np.ndarray, camera, labels: np.ndarray
         out[k] = b / np.linalg.norm(b)
         src.append("facing the camera and its second-bounce partners (start)")
     return out, src
+
+
+def flat_groups(X: np.ndarray, pairs: np.ndarray, sigma: float, min_points: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Patches that form flat surfaces: plane groups (RANSAC, ``min_points`` or more, within
+    3 ``sigma`` of their plane) none of whose members exchange a second bounce (coplanar patches
+    cannot see each other). Returns (labels (M,), plane normals (M, 3) NaN outside groups, the
+    plane normal's std (M,) in radians from the position std ``sigma``: the fit's smallest
+    in-plane spread lambda gives sigma / sqrt(lambda))."""
+    X = np.asarray(X, float)
+    M = len(X)
+    tol = max(3.0 * sigma, 1e-4)
+    labels = plane_groups(X, tol=tol, min_points=min_points) if M >= min_points else np.full(M, -1)
+    normals = np.full((M, 3), np.nan)
+    std = np.full(M, np.nan)
+    for lab in np.unique(labels[labels >= 0]):
+        idx = np.flatnonzero(labels == lab)
+        if np.asarray(pairs)[np.ix_(idx, idx)].any():
+            labels[idx] = -1
+            continue
+        P = X[idx] - X[idx].mean(axis=0)
+        _, s, vt = np.linalg.svd(P, full_matrices=False)
+        normals[idx] = vt[-1]
+        std[idx] = sigma / max(float(s[1]), 1e-12)   # s[1] = sqrt of the smaller in-plane scatter
+    return labels, normals, std

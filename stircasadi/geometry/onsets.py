@@ -189,8 +189,9 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
     w = grid.bin_width
     tau0 = np.broadcast_to(np.asarray(tau0, float), (n,)).copy()
     W = tmpl.width
-    nl = int(math.ceil(left_sigmas * W / w)) + 1
-    nr = int(math.ceil((right_sigmas + 1.5) * W / w)) + 1
+    # at least a few bins on each side: a response narrower than a bin is still fitted
+    nl = max(int(math.ceil(left_sigmas * W / w)) + 1, 4)
+    nr = max(int(math.ceil((right_sigmas + 1.5) * W / w)) + 1, 6)
     L = nl + nr + 1
     k0 = np.round((tau0 - grid.start) / w - 0.5).astype(int)
     starts = np.clip(k0 - nl, 0, max(nb - L, 0))
@@ -210,7 +211,7 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
         a0 = np.maximum(np.percentile(Y, 90, axis=1) - b0, 1e-30)
     # Restrict the window's right end: for a pulse stop right_sigmas*W after tau0; edges need
     # the plateau (tau0 + 2.5 W). Bins beyond get zero weight via masking (set to model later).
-    right = tau0 + (right_sigmas if model == "pulse" else 2.5) * W
+    right = tau0 + np.maximum((right_sigmas if model == "pulse" else 2.5) * W, 3.0 * w)
     mask = C <= right[:, None]
     # scale amplitudes to O(1) for conditioning
     scale = np.maximum(a0, 1e-300)
@@ -235,7 +236,7 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
             p[:, 0] /= scale
             p[:, 2] /= scale
             break
-        new_right = p[rows, 1] + (right_sigmas if model == "pulse" else 2.5) * W
+        new_right = p[rows, 1] + max((right_sigmas if model == "pulse" else 2.5) * W, 3.0 * w)
         new_mask = C[rows] <= new_right[:, None]
         moved = np.any(new_mask != mk, axis=1)
         if not moved.any():
@@ -259,6 +260,8 @@ def fit_onsets(y: np.ndarray, grid, tmpl, tau0: np.ndarray, model: str = "pulse"
         s2 = cost / dof  # residual variance in scaled units
         if sigma_noise is not None:
             s2 = np.maximum(s2, (np.asarray(sigma_noise, float) / scale) ** 2)
+        # noise-free data: the arithmetic's resolution (1e-10 of the amplitude) is the noise floor
+        s2 = np.maximum(s2, 1e-20)
         var_tau = var_tau * s2
         amp = p[:, 0] * scale
         bg = p[:, 2] * scale

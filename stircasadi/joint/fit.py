@@ -55,22 +55,24 @@ def noise_level(view, support=None) -> tuple[float, str, list]:
 
     stir = view.capture.stir
     notes = []
-    data = None
+    # two robust estimates: first differences of every trace (returns occupy few bins), and the
+    # bins no modelled path reaches (unmodelled returns can inflate it): the smaller is kept
+    data = noise_from_data(stir.reshape(-1, stir.shape[-1]))
+    off = np.zeros(0)
     if support is not None:
         mask = np.ones(stir.size, bool)
         mask[support] = False
         off = stir.reshape(-1)[mask]
         if off.size >= 200:
             med = np.median(off)
-            data = float(np.median(np.abs(off - med)) / 0.6745)
-    if data is None or data == 0.0:
-        data = noise_from_data(stir.reshape(-1, stir.shape[-1]))
-    if data == 0.0:  # quantised or noise-free data: the rms of the off-model bins, else a floor
+            d_off = float(np.median(np.abs(off - med)) / 0.6745)
+            data = min(data, d_off) if data > 0 and d_off > 0 else max(data, d_off)
+    if data == 0.0:  # quantised or noise-free data: a floor at the arithmetic's resolution
         peak = float(np.max(np.abs(stir))) or 1.0
-        rms = float(np.sqrt(np.mean(off ** 2))) if support is not None and off.size else 0.0
-        data = rms if rms > 0 else 1e-8 * peak
-        notes.append("the data show no measurable noise (quantised or noise-free); sigma "
-                     f"{data:.3g} = {'the rms of the bins no path reaches' if rms > 0 else '1e-8 of the peak'}")
+        data = 1e-8 * peak
+        notes.append(f"the data show no measurable noise (quantised or noise-free); sigma {data:.3g} "
+                     "= 1e-8 of the peak")
+        return data, "floor (noise-free data)", notes
     cap = view.capture_sigma
     if cap:
         if data > 1.5 * cap:
@@ -96,20 +98,37 @@ def fit_model(model, stir, settings=None, noise: dict | None = None, sigma=None,
     return est
 
 
-def _solve(nlp, warm=None):
-    """Solve with the unknowns the data cannot separate held at their start (``degenerate``);
-    they are reported unidentified (``nlp.frozen``)."""
+def _solve(nlp, warm=None, x0=None, strict: bool = True):
+    """Solve; when IPOPT cannot converge because the data leave directions flat (a degenerate
+    problem: it crawls along the valley), hold the unknowns of those directions
+    (``uncertainty.degenerate`` at the point reached) and solve again from there. The held
+    unknowns are reported unidentified (``nlp.frozen``)."""
     from .uncertainty import degenerate
 
-    nlp.frozen = degenerate(nlp, nlp.x0)
-    if nlp.frozen:
-        nlp.lbx = nlp.lbx.copy()
-        nlp.ubx = nlp.ubx.copy()
-        nlp.lbx[nlp.frozen] = nlp.ubx[nlp.frozen] = np.clip(nlp.x0[nlp.frozen], nlp.lbx[nlp.frozen],
-                                                              nlp.ubx[nlp.frozen])
+    nlp.frozen = []
     if nlp.settings.solver == "lm":
         return solve_lm(nlp)
-    return solve_nlp(nlp, warm=warm)
+    st = nlp.settings.ipopt
+    raise_ = st.raise_on_failure
+    st.raise_on_failure = False
+    try:
+        sol = solve_nlp(nlp, warm=warm, x0=x0)
+    finally:
+        st.raise_on_failure = raise_
+    if sol.success:
+        return sol
+    frozen = degenerate(nlp, sol.x)
+    if not frozen:
+        if raise_ and strict:
+            raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
+                              f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
+                              "guess, more max_iter, or check that the data match the model.",
+                              status=sol.status, stats={"iterations": sol.iterations})
+        return sol
+    nlp.frozen = frozen
+    nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
+    nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
+    return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
 
 
 def _model_chi2(nlp, x, stir) -> float:
@@ -143,12 +162,30 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     notes = plan.notes + notes
 
     def make_nlp(pl):
-        nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge)
+        nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge,
+                        flat=pl.flat)
         return nlp_
 
     nlp = make_nlp(plan)
-    sol = _solve(nlp)
+    sol = _solve(nlp, strict=settings.bounces is not None)
     M = len(view.ids)
+    # the bounce order the data call for: add one while its paths show above the noise
+    K = plan.model.bounces
+    k_max = settings.bounces or (4 if M <= 20 else 3)
+    while settings.bounces is None and K < k_max:
+        plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K + 1)
+        if plan_k.model.n_x != plan.model.n_x:
+            break
+        extra = plan_k.model.simulate(sol.x[:plan.model.n_x]) - plan.model.simulate(sol.x[:plan.model.n_x])
+        big = float(np.max(np.abs(nlp.whiten(extra, 0.0 * extra))))
+        log.info(f"bounce {K + 1}: its paths reach {big:.3g} noise std at the fit")
+        if big <= 3.0:
+            break
+        K += 1
+        plan, nlp = plan_k, make_nlp(plan_k)
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=False)
+    if not sol.success:  # the bounce order is settled: the solve must converge now
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
     chi2_cur = _model_chi2(nlp, sol.x, stir)
     history = [{"n_hidden": len(hidden), "chi2": chi2_cur, "status": sol.status,
                 "wall_time_s": time.perf_counter() - t0}]
@@ -156,7 +193,8 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
              f"({sol.status}, {sol.iterations} iterations)")
     th = plan.model.theta(sol.x[:plan.model.n_x])
     vis_start = VisibleStart(th["position"][:M], start.position_std, th["normal"][:M],
-                             th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"])
+                             th["albedo"][:M], th["area_value"][:M], start.pairs, th["gain"],
+                             start.flat_labels)
     cur_nlp, cur_x = nlp, sol.x
     plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
     want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
@@ -175,7 +213,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         hs = HiddenStart(cand.position, cand.normal, albedo_area=float(np.clip(cand.beta / 0.25, 1e-6, 0.5)))
         try:
             planq = plan_model(view, vis_start, settings, hidden + [hs], brdf=brdf, fixed_visible=True,
-                               extended=False)
+                               extended=False, bounces=K)
             nlpq = make_nlp(planq)
             solq = _solve(nlpq)
         except SolverError as exc:
@@ -200,7 +238,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     if n_hidden is not None and len(hidden) < n_hidden:
         notes.append(f"--hidden {n_hidden}: only {len(hidden)} hidden patches could be placed")
     if hidden:  # the final joint fit: everything free, hidden patches as discs
-        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=settings.bounces)
+        plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K)
         nlp = make_nlp(plan)
         sol = _solve(nlp)
         history.append({"n_hidden": len(hidden), "final": True,

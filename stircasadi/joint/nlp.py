@@ -39,10 +39,14 @@ class JointNLP:
     sigma : noise std (STIR units) and where it came from; None: from ``noise`` or a floor.
     noise : the capture's noise attributes (Poisson: ``scale``, ``background``).
     gauge : optional (G, x0): linear equality G (x - x0) = 0 fixing a free frame.
+    flat : optional (P, 2) patch pairs (k, j) of flat groups: the flatness prior
+        n_k . (z_j - z_k) / |z_j - z_k| ~ N(0, sin 1 deg), each normal perpendicular to the
+        directions to its group's patches — added to the cost and to the Fisher information (it
+        couples normals to positions: unidentified positions leave the normals unidentified).
     """
 
     def __init__(self, model, stir, settings: EstimateSettings | None = None, sigma=None,
-                 noise: dict | None = None, gauge=None):
+                 noise: dict | None = None, gauge=None, flat=None):
         if not getattr(model, "is_setup", False):
             raise ModelError("JointNLP needs a TransientModel after setup(); call model.setup().")
         self.settings = (settings or EstimateSettings()).validate()
@@ -120,6 +124,17 @@ class JointNLP:
         if cs.gloss_prior > 0 and gl:
             self.f_reg = self.f_reg + cs.gloss_prior * ca.sumsqr(x[gl] - ca.DM(model.x0[gl]))
         self.gloss_idx = gl
+        self.r_prior = None
+        if flat is not None and len(flat):
+            from ..model.vertices import patch_quantities
+
+            pq = patch_quantities(model.theta_sym, model)
+            k, j = np.asarray(flat)[:, 0].tolist(), np.asarray(flat)[:, 1].tolist()
+            dz = [pq["z"][c][:, j] - pq["z"][c][:, k] for c in range(3)]
+            nrm = ca.sqrt(dz[0] * dz[0] + dz[1] * dz[1] + dz[2] * dz[2])
+            cosv = (pq["n"][0][:, k] * dz[0] + pq["n"][1][:, k] * dz[1] + pq["n"][2][:, k] * dz[2]) / nrm
+            self.r_prior = (cosv / np.sin(np.radians(1.0))).T
+            self.f_reg = self.f_reg + 0.5 * ca.sumsqr(self.r_prior)
         if cs.weak_prior:
             # the weak prior of uncertainty.PRIOR_RANGE: directions the data do not see stay at
             # the start instead of wandering (negligible where the data inform)
@@ -202,6 +217,8 @@ class JointNLP:
             self.f_J = ca.Function("J", [xx], [ca.jacobian(self.r, xx)])
         else:
             self.f_r = self.f_J = None
+        if self.r_prior is not None:
+            self.f_Jp = ca.Function("Jp", [xx], [ca.jacobian(self.r_prior, xx)])
         My = self.out.y
         self.f_M = ca.Function("M", [xx], [My])
         jm = ca.jacobian(My, self.model.x)

@@ -51,6 +51,7 @@ class ModelPlan:
     given: dict
     gauge: tuple | None
     notes: list = field(default_factory=list)
+    flat: np.ndarray | None = None    # (P, 2) patch pairs of one flat group (the flatness prior)
 
 
 def flatland_plane(view, positions) -> np.ndarray | None:
@@ -103,6 +104,7 @@ class VisibleStart:
     area: np.ndarray | None = None
     pairs: np.ndarray | None = None   # (M, M) bool: the data saw a second bounce between them
     gain: float | None = None         # the STIR's unit (pulse energy x detector gain), if fitted
+    flat_labels: np.ndarray | None = None  # (M,) flat group of each patch (-1: none)
 
 
 def _gain_start(view, X, pairs, q) -> float:
@@ -193,7 +195,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     if brdf == "phong":
         gl[:M] = True
     brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if gl[k] else Lambertian(float(alb0[k])) for k in range(M + Hn)]
-    K = bounces or (3 if Hn else 2)
+    K = max(bounces or 2, 3 if Hn else 2)
     from ..radiometry import facing_matrix
 
     vis_m = facing_matrix(Z, Nn)
@@ -201,7 +203,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         vis_m[:M, :M] = np.asarray(geo.pairs, bool) & ~np.eye(M, dtype=bool)
     model = TransientModel(Z, Nn, a0, view.grid, view.irf, rows, cols, brdfs, source=view.source,
                            camera=view.camera, legs_included=view.capture.legs_included, bounces=K,
-                           names=names, visibility=vis_m)
+                           names=names, visibility=vis_m, bounces_hidden=3)
     # ---- visible patches
     known_pos = np.isfinite(view.known_xyz).all(axis=1)
     ray = np.isfinite(view.rays).all(axis=1) & ~known_pos
@@ -259,6 +261,19 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     given = {"position": np.concatenate([known_pos, np.zeros(Hn, bool)]),
              "normal": np.concatenate([given_n, np.zeros(Hn, bool)]),
              "area": given_area.copy()}
+    flat = None
+    lab = getattr(geo, "flat_labels", None)
+    if lab is not None and not fixed_visible:  # flatness: each normal perpendicular to its group
+        pairs_f = []
+        for g_ in np.unique(lab[lab >= 0]):
+            idx = np.flatnonzero(lab == g_)
+            for k in idx:
+                if given_n[k]:
+                    continue
+                d = np.linalg.norm(X[idx] - X[k], axis=1)
+                for j in idx[np.argsort(d)[1:5]]:
+                    pairs_f.append((k, j))
+        flat = np.array(pairs_f, int).reshape(-1, 2) if pairs_f else None
     gauge = None
     if view.frame == "source-origin" and free3.any() and not fixed_visible:
         fp = model.params["position"].free
@@ -267,4 +282,4 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         if len(G):
             gauge = (G, model.x0.copy())
     vis = np.concatenate([np.ones(M, bool), np.zeros(Hn, bool)])
-    return ModelPlan(model, names, ids, vis, given, gauge, notes)
+    return ModelPlan(model, names, ids, vis, given, gauge, notes, flat)

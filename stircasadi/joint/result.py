@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import casadi as ca
 import numpy as np
 
 from .uncertainty import QUANTITIES, fisher, report_function
@@ -88,6 +89,9 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
     Jq = np.asarray(Jq)
     if nlp.pem:
         Jq = np.hstack([Jq, np.zeros((len(q), 1))])
+    if prior_info is None and getattr(nlp, "r_prior", None) is not None:
+        Jp = np.asarray(ca.densify(nlp.f_Jp(sol.x)))
+        prior_info = Jp.T @ Jp
     unc = fisher(nlp, sol.x, prior_info, frozen=getattr(nlp, "frozen", None))
     cov_x = unc["cov_x"]
     cov_q = Jq @ cov_x @ Jq.T
@@ -133,6 +137,15 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
         for k in np.flatnonzero(given.get(name, np.zeros(M, bool))):
             notes.setdefault((k, name), "given")
         values[name], std[name], ident[name], free[name] = v, s, ok, d
+    # a hidden disc's area is resolved only when its spread is significantly above none: at its
+    # lower bound, or within 2 std of it, the data say "smaller than the resolution", not a size
+    A = model.param("area")
+    for k in np.flatnonzero(model.albedo_product & A.free):
+        a, sa = float(values["area"][k]), float(std["area"][k])
+        if a - A.lower[k] < 2.0 * sa or a <= A.lower[k] * (1 + 1e-6):
+            ident["area"][k] = False
+            notes[(k, "area")] = (f"the extent is not resolved by the data (area below {a + 2 * sa:.3g} m^2 "
+                                  "at 2 sigma: smaller than the transient resolution)")
     # albedo of a patch whose unknown is albedo x area: only where the area is identified
     for k in np.flatnonzero(model.albedo_product):
         if not (free["area"][k] and ident["area"][k]) and not given.get("area", np.zeros(M, bool))[k]:

@@ -88,7 +88,7 @@ def solve_nlp(nlp, x0=None, warm: Solution | None = None) -> Solution:
     x_init = np.clip(x_init, nlp.lbx, nlp.ubx)
     d = nlp.curvature_scale(x_init) if st.curvature_scaling else np.ones(nlp.n_x)
     opts = {"tol": st.tol, "max_iter": st.max_iter, "honor_original_bounds": "yes",
-            "acceptable_tol": st.acceptable_tol, "acceptable_iter": 10, "print_level": st.print_level,
+            "acceptable_tol": st.acceptable_tol, "acceptable_iter": 5, "print_level": st.print_level,
             "nlp_scaling_method": "none" if st.curvature_scaling else "gradient-based"}
     xi = ca.MX.sym("xi", nlp.n_x)
     fg = ca.Function("fg", [nlp.xx], [nlp.f, nlp.g])

@@ -119,7 +119,12 @@ def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
     dg = np.sqrt(np.maximum(np.diag(Fz), 1e-300))
     Fn = Fz / np.outer(dg, dg)
     ev, V = np.linalg.eigh(Fn)
-    null_mask = ev < us.null_tol * max(ev.max(initial=0.0), 1e-300)
+    # a direction is unseen when its information is numerically nil, or below the weak prior's
+    # along it (correlated but well-determined unknowns have small normalised eigenvalues too)
+    Vx = Z @ (V / dg[:, None])
+    prior_info_dir = np.sum(Vx ** 2 / prior_std_x(nlp)[:, None] ** 2, axis=0)
+    null_mask = (ev < us.null_tol * max(ev.max(initial=0.0), 1e-300)) & (ev < 10.0 * prior_info_dir) \
+        | (ev < prior_info_dir)
     good = ~null_mask
     inv = (V[:, good] / ev[good]) @ V[:, good].T
     cov_z = inv / np.outer(dg, dg)
@@ -152,15 +157,20 @@ _FREEZE_ORDER = ("tilt2", "tilt", "area", "specular", "exponent", "albedo", "gai
 
 
 def degenerate(nlp, x, tol: float = 1e-8, max_freeze: int | None = None) -> list[int]:
-    """Unknowns to hold at their start so the information at ``x`` is not singular: while the
-    correlation-normalised information (on the equality constraints' manifold) has eigenvalues
-    below ``tol``, the unknown of the weakest direction with the largest weight, of the kind
-    first in ``_FREEZE_ORDER``, is held. A well-posed problem returns []."""
+    """Unknowns to hold at their start so the information at ``x`` is not nearly singular: while
+    the weakest direction of the correlation-normalised information (on the equality
+    constraints' manifold) has an eigenvalue below ``tol`` and the data know it less than 25
+    times better than the weak prior (its std above a fifth of its plausible range), the unknown
+    of that direction with the largest weight, of the kind first in ``_FREEZE_ORDER``, is held.
+    A well-posed problem returns []."""
     x = np.asarray(x, float)
     if nlp.poisson:
         return []
     J = nlp.jacobian(x)
     F = J.T @ J
+    if getattr(nlp, "r_prior", None) is not None:
+        Jp = np.asarray(ca.densify(nlp.f_Jp(x)))
+        F = F + Jp.T @ Jp
     n = nlp.n_x
     eq = np.flatnonzero(np.isfinite(nlp.lbg) & (nlp.lbg == nlp.ubg)) if len(nlp.lbg) else np.zeros(0, int)
     if len(eq):
@@ -177,9 +187,11 @@ def degenerate(nlp, x, tol: float = 1e-8, max_freeze: int | None = None) -> list
         Fz = Z.T @ F[np.ix_(keep, keep)] @ Z
         dg = np.sqrt(np.maximum(np.diag(Fz), 1e-300))
         ev, V = np.linalg.eigh(Fz / np.outer(dg, dg))
-        if ev[0] >= tol * max(ev[-1], 1e-300):
-            break
-        v = np.abs(Z @ (V[:, 0] / dg))          # the weakest direction, in the unknowns
+        Vx = Z @ (V[:, :1] / dg[:, None])
+        pinfo = float(np.sum(Vx[:, 0] ** 2 / prior_std_x(nlp)[keep] ** 2))
+        if ev[0] >= tol * max(ev[-1], 1e-300) or ev[0] >= 25.0 * pinfo:
+            break            # the weakest direction is seen by the data (std < a fifth of its range)
+        v = np.abs(Vx[:, 0])                       # the weakest direction, in the unknowns
         v = v / v.max()
         cand = np.flatnonzero(v > 0.05)
         j = min(cand, key=lambda c: (rank.get(names[keep[c]], 99), -v[c]))

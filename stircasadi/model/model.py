@@ -71,11 +71,13 @@ class TransientModel:
     source, camera : (3,) points. ``phi``: pulse energy. ``legs_included``: as in Capture.
     visibility : (M, M) bool patch-to-patch visibility (default: the facing test).
     bounces : K, the largest bounce order modelled (>= 1).
+    bounces_hidden : the largest order of paths through a hidden patch (neither illuminated nor
+        observed); default K.
     """
 
     def __init__(self, positions, normals, areas, grid: TimeGrid, irf, ill_ids, obs_ids, brdfs,
                  source=(0.0, 0.0, 0.0), camera=None, phi: float = 1.0, legs_included: bool = True,
-                 visibility=None, bounces: int = 2, names=None):
+                 visibility=None, bounces: int = 2, names=None, bounces_hidden: int | None = None):
         z = np.asarray(positions, float)
         n = np.asarray(normals, float)
         a = np.asarray(areas, float)
@@ -106,6 +108,7 @@ class TransientModel:
         self.phi = float(phi)
         self.legs_included = bool(legs_included)
         self.bounces = int(bounces)
+        self.bounces_hidden = None if bounces_hidden is None else int(bounces_hidden)
         self.names = list(names) if names is not None else [f"P{k}" for k in range(M)]
         self.glossy = np.array([isinstance(b, Phong) for b in brdfs])
         self.mirrors = {k: b for k, b in enumerate(brdfs) if isinstance(b, Mirror)}
@@ -302,8 +305,12 @@ class TransientModel:
                 obs_col[self.layout.first[k]] = c
         ill_ok = ~self.is_mirror[self.ill_ids]
         rows = np.flatnonzero(ill_ok)
+        hid = np.ones(self.M, bool)
+        hid[self.ill_ids] = False
+        hid[self.obs_ids] = False
         paths = enumerate_paths(self.legs, ill_vertex[rows], obs_col, len(self.obs_ids),
-                                self.bounces, moving_patch[self.layout.patch])
+                                self.bounces, moving_patch[self.layout.patch], hid[self.layout.patch],
+                                self.bounces_hidden)
         for g in paths:  # enumerate_paths numbered the rows of ill_ok; map back to STIR rows
             r, c = np.divmod(g.trace, len(self.obs_ids))
             g.trace = rows[r] * len(self.obs_ids) + c

@@ -66,11 +66,13 @@ def legs_between(layout, patch_vis, mirrors: dict, z, n, areas) -> LegTable:
 
 
 def enumerate_paths(legs: LegTable, ill_vertex: np.ndarray, obs_col_of_vertex: np.ndarray,
-                    n_obs: int, bounces: int, moving: np.ndarray) -> list[PathGroup]:
+                    n_obs: int, bounces: int, moving: np.ndarray, hidden: np.ndarray | None = None,
+                    bounces_hidden: int | None = None) -> list[PathGroup]:
     """Paths of 1..bounces bounces grouped by (bounce order, mirror signature).
 
     ``ill_vertex[r]`` is the vertex of STIR row r; ``obs_col_of_vertex[v]`` the STIR column
-    observing vertex v (-1 if none); ``moving[v]`` whether v's position depends on unknowns."""
+    observing vertex v (-1 if none); ``moving[v]`` whether v's position depends on unknowns;
+    paths through a ``hidden`` vertex are kept up to ``bounces_hidden`` bounces only."""
     order = np.argsort(legs.src, kind="stable")
     ls, ld, lv = legs.src[order], legs.dst[order], legs.via[order]
     V = len(obs_col_of_vertex)
@@ -89,6 +91,9 @@ def enumerate_paths(legs: LegTable, ill_vertex: np.ndarray, obs_col_of_vertex: n
             verts = np.concatenate([verts[rep], ld[pos][:, None]], axis=1)
             vias = np.concatenate([vias[rep], lv[pos][:, None]], axis=1)
             row_of = row_of[rep]
+            if hidden is not None and bounces_hidden is not None and nb > bounces_hidden:
+                ok = ~hidden[verts].any(axis=1)
+                verts, vias, row_of = verts[ok], vias[ok], row_of[ok]
         col = obs_col_of_vertex[verts[:, -1]]
         keep = col >= 0
         if not keep.any():

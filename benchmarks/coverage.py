@@ -1,0 +1,139 @@
+"""Coverage study: does every reported std cover its error on scenes no one tuned the estimator on?
+
+    python benchmarks/coverage.py [N_SCENES] [FIRST_SEED] [--timeout S] [--workers W]
+
+Draws scenes from the seeded generator (``stircasadi.testing.scenes.generate``), simulates each
+through its sensor, estimates it BLIND (truth stripped) with ``stircasadi.pipeline.estimate_capture``
+and scores it with ``stircasadi.report.compare``. Prints, and writes to
+``benchmarks/results/coverage.json``:
+
+* silent-wrong: estimates that report success with a number beyond 4 sigma (must be 0);
+* coverage: the fraction of reported numbers (in successful estimates) with |err|/sigma <= 1
+  (target 60-75 %) and <= 2 (target >= 93 %);
+* hidden patches: for every true hidden patch of >= 2 cm whose third-bounce peak is >= 20 noise
+  std, whether it was placed within 1 cm or the result was flagged;
+* verdicts, wall times and failures (exceptions are recorded, never fatal).
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _hidden_visibility(g, cap):
+    """Third-bounce peak / noise std of each hidden patch (simulated alone)."""
+    from stircasadi.scene import Scene
+    from stircasadi.transport import simulate
+
+    sc = g.scene
+    hid = np.flatnonzero(sc.hidden)
+    out = {}
+    for h in hid:
+        keep = [k for k in range(sc.n_patches) if not sc.hidden[k] or k == h]
+        s1 = Scene([sc.patches[k] for k in keep], source=sc.source, camera=sc.camera)
+        tr = simulate(s1, g.grid, g.sensor_clean, bounces=3, per_bounce=True)
+        out[int(h)] = float(tr.per_bounce[2].max() / g.sigma)
+    return out
+
+
+def one(seed: int) -> dict:
+    from stircasadi.pipeline import estimate_capture
+    from stircasadi.progress import set_verbosity
+    from stircasadi.report import compare, vec, alignment
+    from stircasadi.testing.scenes import generate
+
+    set_verbosity(-1)
+    rec = {"seed": seed}
+    try:
+        g = generate(seed)
+        rec["params"] = {k: (v if not isinstance(v, np.generic) else v.item()) for k, v in g.params.items()}
+        cap = g.capture()
+        truth = cap.truth
+        cap.truth = None
+        t0 = time.perf_counter()
+        res = estimate_capture(cap)
+        rec["wall_s"] = time.perf_counter() - t0
+        d = res.to_json_dict()
+        rec["verdict"] = d["verdict"]
+        rec["reasons"] = d["reasons"]
+        rows = compare(d, truth)
+        rec["z"] = [(r["quantity"], None if r["z"] is None else float(r["z"])) for r in rows
+                    if r["quantity"] != "match"]
+        # hidden patches: placed within 1 cm of each true one?
+        Q, s, st = alignment(d, truth)
+        H = np.array([(vec(p.get("position")) - s) @ Q + st for p in d["patches"] if not p["visible"]
+                      and p.get("position") is not None]).reshape(-1, 3)
+        snr = _hidden_visibility(g, cap) if (~truth["visible"]).any() else {}
+        hid = []
+        for h, q in snr.items():
+            side = float(np.sqrt(truth["areas"][h]))
+            dmin = float(np.min(np.linalg.norm(H - truth["positions"][h], axis=1))) if len(H) else np.inf
+            hid.append({"side": side, "snr": q, "dist": dmin})
+        rec["hidden"] = hid
+    except Exception as exc:  # recorded, never fatal
+        rec["error"] = f"{type(exc).__name__}: {exc}"
+        rec["trace"] = traceback.format_exc()[-1500:]
+    return rec
+
+
+def summarise(recs: list[dict]) -> dict:
+    ok = [r for r in recs if r.get("verdict") == "OK"]
+    zs = np.array([z for r in ok for _, z in r.get("z", []) if z is not None and np.isfinite(z)])
+    inf_z = sum(1 for r in ok for _, z in r.get("z", []) if z is not None and not np.isfinite(z))
+    silent = [r["seed"] for r in ok if any(z is not None and (not np.isfinite(z) or z > 4)
+                                           for _, z in r.get("z", []))]
+    hid = [(h, r.get("verdict")) for r in recs for h in r.get("hidden", [])
+           if h["side"] >= 0.02 and h["snr"] >= 20]
+    hid_ok = sum(1 for h, v in hid if h["dist"] <= 0.01 or v != "OK")
+    return {"n_scenes": len(recs), "n_ok": len(ok),
+            "n_unreliable": sum(1 for r in recs if r.get("verdict") == "UNRELIABLE"),
+            "n_error": sum(1 for r in recs if "error" in r),
+            "silent_wrong_seeds": silent, "n_numbers": int(len(zs) + inf_z), "n_infinite_z": inf_z,
+            "within_1sigma": float(np.mean(zs <= 1)) if len(zs) else None,
+            "within_2sigma": float(np.mean(zs <= 2)) if len(zs) else None,
+            "hidden_visible": len(hid), "hidden_placed_or_flagged": hid_ok,
+            "median_wall_s": float(np.median([r["wall_s"] for r in recs if "wall_s" in r])) if recs else None}
+
+
+def main(argv):
+    args = [a for a in argv if not a.startswith("--")]
+    n = int(args[0]) if args else 20
+    first = int(args[1]) if len(args) > 1 else 0
+    workers = int(next((a.split("=")[1] for a in argv if a.startswith("--workers=")), 1))
+    timeout = float(next((a.split("=")[1] for a in argv if a.startswith("--timeout=")), 600))
+    seeds = list(range(first, first + n))
+    recs = []
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(workers, maxtasksperchild=1) as pool:
+        futs = {s: pool.apply_async(one, (s,)) for s in seeds}
+        for s, f in futs.items():
+            try:
+                r = f.get(timeout=timeout)
+            except mp.TimeoutError:
+                r = {"seed": s, "error": f"timeout after {timeout:g} s"}
+            recs.append(r)
+            zmax = max([z for _, z in r.get("z", []) if z is not None] + [0])
+            print(f"seed {s:4d} {r.get('params', {}).get('kind', '?'):6s} "
+                  f"cal={r.get('params', {}).get('calibrated', '?')!s:5s} "
+                  f"nvis={r.get('params', {}).get('n_visible', '?')!s:3s} nhid={r.get('params', {}).get('n_hidden', '?')} "
+                  f"{r.get('verdict', 'ERROR'):10s} max z {zmax:8.3g} {r.get('wall_s', 0):6.1f}s "
+                  f"{(r.get('error') or '; '.join(r.get('reasons', [])))[:110]}", flush=True)
+    summ = summarise(recs)
+    summ["wall_total_s"] = time.perf_counter() - t0
+    print(json.dumps(summ, indent=1))
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"coverage_{first}_{first + n}.json").write_text(json.dumps({"summary": summ, "records": recs},
+                                                                            default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,18 @@
+"""Relay-wall (NLOS) reconstructions: LCT, f-k migration, backprojection and hidden surfaces.
+
+Re-exports only; each algorithm lives in its own module.
+"""
+from .backprojection import backprojection
+from .fk import fk
+from .lct import lct
+from .relay import Relay, from_capture, from_stir
+from .settings import VolumeSettings
+from .volume import Maps, Volume
+
+__all__ = ["lct", "fk", "backprojection", "Relay", "from_capture", "from_stir", "VolumeSettings",
+           "Volume", "Maps"]
+from .estimate import METHODS, NLOSEstimate, estimate_capture
+from .surface import SurfaceResult, SurfaceSettings, fit_surface
+
+__all__ += ["estimate_capture", "NLOSEstimate", "METHODS", "fit_surface", "SurfaceSettings",
+            "SurfaceResult"]
