@@ -10,13 +10,21 @@ import pytest
 from stircasadi.studies import RunSettings, Study, load_results, run_study
 from stircasadi.studies import runner as runner_mod
 
-# 4 cells that estimate (two noise levels x two seeds) and one that fails in the simulation
-# (a 10-bin grid cannot hold the scene's paths)
+# engine mechanics: 4 cells that simulate only (two noise levels x two seeds; fast)
 TINY = {"name": "tiny", "repetitions": 2, "seed": 5,
-        "base": {"problem": "three_patch"},
+        "base": {"problem": "three_patch", "estimate": False},
         "cases": [{"label": "ok"}],
         "factors": {"noise": [1e-4, 1e-3]}}
-WITH_FAILURE = {**TINY, "repetitions": 1, "cases": [{"label": "ok"}, {"label": "short grid", "n_bins": 10}]}
+# one cell that estimates, one that only simulates, and two that fail in the simulation (a
+# 10-bin grid cannot hold the scene's paths)
+WITH_FAILURE = {"name": "mixed", "repetitions": 1, "seed": 5, "base": {"problem": "three_patch"},
+                "cases": [{"label": "ok"}, {"label": "short grid", "n_bins": 10}],
+                "factors": {"noise": [1e-5, 1e-3]},
+                "exclude": [{"label": "ok", "noise": 1e-3}]}
+WITH_FAILURE["cases"].append({"label": "simulated", "estimate": False})
+# two cells that estimate and report numbers
+ESTIMATED = {"name": "estimated", "repetitions": 1, "seed": 5, "base": {"problem": "three_patch"},
+             "factors": {"noise": [1e-6, 1e-5]}}
 
 # columns that legitimately differ between two runs of the same cells
 VOLATILE = ("wall_s", "simulate_s", "estimate_s", "capture_s", "sim_s_auto", "stage_time_s",
@@ -47,8 +55,9 @@ def test_dask_two_workers_give_the_serial_table(tmp_path):
     dask = run_study(WITH_FAILURE, tmp_path / "dask", settings=RunSettings(workers=2, figures=False))
     assert dask.provenance["run"]["mode"] == "LocalCluster(2 workers)"
     assert dask.provenance["run"]["workers"]["n"] == 2
-    assert len(serial.cells) == 4
-    assert (serial.cells["status"] == "ok").sum() == 2
+    assert len(serial.cells) == 5
+    assert (serial.cells["status"] == "ok").sum() == 3
+    assert serial.cells["n_numbers"].max() > 0                         # the estimate reported
     assert set(dask.cells["worker"]) != set(serial.cells["worker"])   # it really ran elsewhere
     pd.testing.assert_frame_equal(stable(serial.cells), stable(dask.cells))
     pd.testing.assert_frame_equal(serial.numbers.sort_values(["cell", "patch_id", "quantity", "component"])
@@ -95,11 +104,11 @@ def test_interrupted_study_resumes_without_recomputing(tmp_path, counted):
 def test_retry_failed_and_fresh(tmp_path, counted):
     out = tmp_path / "f"
     run_study(WITH_FAILURE, out, settings=RunSettings(workers=0, figures=False))
-    assert len(counted) == 4
+    assert len(counted) == 5
     run_study(WITH_FAILURE, out, settings=RunSettings(workers=0, figures=False, retry_failed=True))
-    assert len(counted) == 6 and {c["label"] for c in counted[4:]} == {"short grid"}
+    assert len(counted) == 7 and {c["label"] for c in counted[5:]} == {"short grid"}
     run_study(WITH_FAILURE, out, settings=RunSettings(workers=0, figures=False, fresh=True))
-    assert len(counted) == 10
+    assert len(counted) == 12
 
 
 def test_dask_interrupt_closes_the_cluster_and_keeps_finished_cells(tmp_path, counted):
@@ -162,12 +171,12 @@ def test_the_estimator_never_sees_the_truth(monkeypatch):
 
 
 def test_tables_and_provenance_round_trip(tmp_path):
-    res = run_study(TINY, tmp_path / "p", size=None, settings=RunSettings(workers=0))
+    res = run_study(ESTIMATED, tmp_path / "p", size=None, settings=RunSettings(workers=0))
     back = load_results(tmp_path / "p")
     pd.testing.assert_frame_equal(res.cells, back.cells)
     p = back.provenance
-    assert p["version"] and p["seeds"] == [5, 6] and p["machine"]["node"] and p["run"]["mode"] == "serial"
-    assert (tmp_path / "p" / "summary.md").read_text().startswith("# tiny")
+    assert p["version"] and p["seeds"] == [5] and p["machine"]["node"] and p["run"]["mode"] == "serial"
+    assert (tmp_path / "p" / "summary.md").read_text().startswith("# estimated")
     names = {f.name for f in back.figures}
     assert {"accuracy_vs_noise.png", "coverage.png"} <= names
     # every estimated cell's numbers are in the numbers table, tied by cell key
@@ -205,7 +214,7 @@ def test_sigterm_stops_the_cli_and_keeps_finished_cells(tmp_path):
     import time
 
     spec = tmp_path / "s.toml"
-    spec.write_text('name = "term"\nrepetitions = 40\n[base]\nproblem = "hidden_corner"\n')
+    spec.write_text('name = "term"\nrepetitions = 40\n[base]\nproblem = "three_planes"\nestimate = false\n')
     out = tmp_path / "o"
     exe = [sys.executable, "-m", "stircasadi.cli", "study", str(spec), "--out", str(out), "--serial", "-q"]
     proc = subprocess.Popen(exe, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

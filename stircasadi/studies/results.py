@@ -33,6 +33,9 @@ from .cache import dumps
 __all__ = ["StudyResults", "write_results", "load_results", "design_columns", "markdown_table", "as_text"]
 
 _RUN_COLS = ("repetition", "seed")
+#: the columns of the numbers table (stircasadi.testing.compare rows, tied to their cell)
+NUMBER_COLUMNS = ["cell", "patch_id", "truth_index", "visible", "quantity", "component", "kind",
+                  "estimate", "truth", "err", "std", "std_missing", "z", "flagged", "given", "nonfinite"]
 
 
 @dataclass
@@ -125,7 +128,7 @@ def _tables(keys, cache):
         for r in rec.get("numbers") or []:
             nums.append({"cell": k, **r})
     cells = pd.DataFrame(rows)
-    numbers = pd.DataFrame(nums)
+    numbers = pd.DataFrame(nums, columns=None if nums else NUMBER_COLUMNS)
     for df in (cells, numbers):
         for col in df.columns:
             if df[col].dtype == object:
