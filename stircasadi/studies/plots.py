@@ -175,7 +175,10 @@ def plot_accuracy_vs_noise(res, noise_col: str = "noise", quantities=("position"
         ax.set_ylabel(f"{q} error ({'m' if q == 'position' else '1'})")
         ax.set_title(f"{q}: error vs reported std")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+        else:
+            ax.text(0.5, 0.5, f"no {q} reported", transform=ax.transAxes, ha="center")
     fig.suptitle(f"{res.study.get('name')}: accuracy vs noise beside the Cramér-Rao bound", fontsize=10)
     fig.tight_layout()
     return fig
