@@ -92,3 +92,8 @@ class CodeError(StircasadiError, ValueError):
 
 class ReconstructionError(StircasadiError, ValueError):
     """A relay-wall (NLOS) reconstruction cannot run on the given capture or settings."""
+
+
+class StudyError(StircasadiError, ValueError):
+    """A study spec is malformed (unknown factor, bad value, empty design) or its output folder
+    cannot hold the results."""
