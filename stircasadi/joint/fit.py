@@ -132,7 +132,54 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
     nlp.frozen = frozen
     nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
     nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
-    return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    st.raise_on_failure = raise_ and strict
+    try:
+        return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    finally:
+        st.raise_on_failure = raise_
+
+
+def _glossy_patches(view, start, settings, make_nlp, stir, notes) -> np.ndarray:
+    """Which visible patches the data show to be glossy: from an all-Lambertian fit, each patch in
+    turn gets modified-Phong unknowns (specular, exponent) and keeps them when the whitened chi2
+    drops by more than the likelihood-ratio threshold for two unknowns (``search.p_value``); the
+    others stay Lambertian (a Phong lobe the data never see would make their albedo unidentifiable).
+    Above 30 patches every patch is modelled glossy (the selection would cost one fit per patch)."""
+    M = len(view.ids)
+    if M > 30:
+        return np.ones(M, bool)
+    def chi2_of(mask):
+        try:
+            nk = make_nlp(plan_model(view, start, settings, [], brdf=mask, bounces=settings.bounces))
+            sk = _solve(nk, strict=False)
+        except SolverError:
+            return None
+        return _model_chi2(nk, sk.x, stir) if sk.success else None
+
+    gl = np.zeros(M, bool)
+    chi2_cur = chi2_of(gl)
+    thr = lr_threshold(settings.search.p_value, 2)
+    while chi2_cur is not None and not gl.all():  # forward selection: the largest drop first
+        drops = {}
+        for k in np.flatnonzero(~gl):
+            mask = gl.copy()
+            mask[k] = True
+            c = chi2_of(mask)
+            if c is not None:
+                drops[k] = chi2_cur - c
+        if not drops:
+            break
+        k = max(drops, key=drops.get)
+        if drops[k] <= thr:
+            break
+        gl[k] = True
+        chi2_cur -= drops[k]
+    names = [f"V{int(i)}" for i in view.ids]
+    notes.append("glossy (modified Phong) by the likelihood-ratio test: "
+                 + (", ".join(names[k] for k in np.flatnonzero(gl)) or "none")
+                 + f"; the others stay Lambertian (chi2 drop below {thr:.3g})")
+    log.info(notes[-1])
+    return gl
 
 
 def _model_chi2(nlp, x, stir) -> float:
@@ -170,9 +217,12 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
                         flat=pl.flat)
         return nlp_
 
+    M = len(view.ids)
+    if brdf == "phong" and not hidden:
+        brdf = _glossy_patches(view, start, settings, make_nlp, stir, notes)
+        plan = plan_model(view, start, settings, hidden, brdf=brdf, bounces=settings.bounces)
     nlp = make_nlp(plan)
     sol = _solve(nlp, strict=settings.bounces is not None)
-    M = len(view.ids)
     # the bounce order the data call for: add one while its paths show above the noise
     K = plan.model.bounces
     k_max = settings.bounces or (4 if M <= 20 else 3)
@@ -193,8 +243,14 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         K += 1
         plan, nlp = plan_k, make_nlp(plan_k)
         sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=False)
-    if not sol.success:  # the bounce order is settled: the solve must converge now
-        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
+        and view.template is not None
+    if not sol.success:  # the bounce order is settled: the solve must converge now, unless
+        # returns of hidden patches it cannot model may be what holds it back (the search is next)
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=not want_search)
+        if not sol.success:
+            log.info(f"the visible-only fit did not converge ({sol.status}); searching its residual "
+                     "for hidden patches (the final fit must converge)")
     chi2_cur = _model_chi2(nlp, sol.x, stir)
     history = [{"n_hidden": len(hidden), "chi2": chi2_cur, "status": sol.status,
                 "wall_time_s": time.perf_counter() - t0}]
@@ -206,8 +262,6 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
                              start.flat_labels)
     cur_nlp, cur_x = nlp, sol.x
     plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
-    want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
-        and view.template is not None
     max_h = settings.search.max_hidden if n_hidden is None else n_hidden
     tmpl = view.template
     while want_search and len(hidden) < max_h:
@@ -218,6 +272,10 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
                       max_traces=settings.search.max_traces,
                       exclude=np.array([h.position for h in hidden]) if hidden else None, plane=plane)
         if cand is None:
+            break
+        if n_hidden is None and not cand.significant():
+            log.info(f"search: the strongest residual return (T = {cand.statistic:.3g} over "
+                     f"{cand.n_tested} points) is what noise reaches: no further hidden patch")
             break
         hs = HiddenStart(cand.position, cand.normal, albedo_area=float(np.clip(cand.beta / 0.25, 1e-6, 0.5)))
         try:
@@ -266,6 +324,11 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         history.append({"n_hidden": len(hidden), "final": True,
                         "chi2": _model_chi2(nlp, sol.x, stir), "status": sol.status,
                         "wall_time_s": time.perf_counter() - t0})
+    if not sol.success:
+        raise SolverError(f"the fit of the visible patches did not converge ({sol.status}) and no hidden "
+                          "patch explains its residual. Check that the data match the model (bounces, "
+                          "IRF, noise level) or give a better start.", status=sol.status,
+                          stats=getattr(sol, "info", None))
     est = assemble(nlp, sol, plan.names, given=plan.given)
     est.extra["search_history"] = history
     return FitResult(est, plan, nlp, sol, history, notes, sigma, s_src)

@@ -133,7 +133,8 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
     (``VisibleStart``) and the hidden starts ``hidden``. ``fixed_visible``: every visible number
     stays at its start (the quick test of a hidden candidate); ``extended``: which hidden
     patches are discs whose area is an unknown — True/False for all, or a set of their indices
-    in ``hidden`` (default ``settings.search.extended``)."""
+    in ``hidden`` (default ``settings.search.extended``). ``brdf``: "lambertian", "phong" (every
+    visible patch modified Phong) or a boolean mask of the glossy visible patches."""
     extended = settings.search.extended if extended is None else extended
     ids = np.asarray(view.ids, int)
     M = len(ids)
@@ -193,8 +194,10 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         a0[M + j] = h.area
     names = [f"V{int(i)}" for i in ids] + [f"H{j + 1}" for j in range(Hn)]
     gl = np.zeros(M + Hn, bool)
-    if brdf == "phong":
-        gl[:M] = True
+    if isinstance(brdf, str):
+        gl[:M] = brdf == "phong"
+    else:  # which visible patches are glossy (the rest Lambertian)
+        gl[:M] = np.asarray(brdf, bool)
     brdfs = [Phong(alb0[k] * 0.8, 0.1, 10.0) if gl[k] else Lambertian(float(alb0[k])) for k in range(M + Hn)]
     K = max(bounces or 2, 3 if Hn else 2)
     from ..radiometry import facing_matrix
@@ -230,8 +233,9 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         if free_area.any():
             model.set_unknown("area", np.flatnonzero(free_area), lower=1e-7, upper=1.0,
                               scale=np.maximum(a0[:M][free_area], 1e-6))
-        if brdf == "phong":
-            model.set_unknown("specular", np.arange(M)).set_unknown("exponent", np.arange(M), upper=200.0)
+        if gl[:M].any():
+            g_ = np.flatnonzero(gl[:M])
+            model.set_unknown("specular", g_).set_unknown("exponent", g_, upper=200.0)
         if len(tilt_v):
             model.set_unknown("tilt", tilt_v).set_unknown("tilt2", tilt_v)
     if not view.radiometric:  # counts, volts...: the pulse energy x detector gain is unknown

@@ -205,6 +205,10 @@ def patch_records(est: JointEstimate, ids, visible, names, brdf: str = "lamberti
             v, s = est.values[q][k], est.std[q][k]
             note = est.notes.get((k, q))
             given = note == "given"
+            if q in ("specular", "exponent") and not est.free[q][k]:
+                p[q] = p[f"{q}_std"] = None   # selected Lambertian: no Phong lobe to report
+                notes[q] = "Lambertian: the data show no gloss (likelihood-ratio test)"
+                continue
             if not est.free[q][k] and not given:
                 p[q] = None
                 p[f"{q}_std"] = None

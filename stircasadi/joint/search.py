@@ -41,6 +41,15 @@ class Candidate:
     statistic: float
     beta: float
     normal: np.ndarray
+    n_tested: int = 1   # grid points the statistic was maximised over (the look-elsewhere count)
+
+    def significant(self, p: float = 1e-3) -> bool:
+        """Whether T exceeds what noise alone reaches with probability ``p`` over the points
+        tested (T of one point is a halved chi-square with one degree of freedom; Bonferroni over
+        the grid). A screening test: the caller's likelihood-ratio refit decides."""
+        from scipy.stats import chi2
+
+        return self.statistic > chi2.isf(min(2.0 * p / max(self.n_tested, 1), 1.0), 1)
 
 
 def matched_filters(R: np.ndarray, template, grid):
@@ -206,4 +215,4 @@ def search(R: np.ndarray, view, z, n, rho, template, step: float, max_traces: in
     f, _ = _weights(xb[None], z, n, ctx["rho"])
     cen = np.average(z, axis=0, weights=np.maximum(f[0], 1e-30))
     nrm = cen - xb
-    return Candidate(xb, Tb, bb, nrm / np.linalg.norm(nrm))
+    return Candidate(xb, Tb, bb, nrm / np.linalg.norm(nrm), n_tested=int(len(G)))
