@@ -186,8 +186,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     slack = st.z_slack if st.z_slack is not None else 1.5 * max(w, r0.sigma)
     sig_b = (r0.sigma / 5.0, 5.0 * r0.sigma)
     tail_b = (0.02 * r0.sigma, min([40.0 * r0.sigma] + [0.5 * t for t, _ in r0.slow]))
-    resp_hi = Response(r0.kind, sig_b[1], tail_b[1] / 4.0 if r0.kind == "emg" else 0.0)
-    slow_pad = 4.0 * max([t for t, _ in r0.slow], default=0.0)
+    resp_hi = Response(r0.kind, 2.0 * r0.sigma, 2.0 * r0.tail if r0.kind == "emg" else 0.0)
+    slow_pad = 0.5 * max([t for t, _ in r0.slow], default=0.0)
     ext = _extent(init, st)
     sizes = [max(4, int(round(st.n_nodes / 2 ** (st.levels - 1 - k)))) for k in range(st.levels)]
     frame = relay.frame
@@ -203,10 +203,12 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             z, rho = _initial(init, grid, st)
         else:
             z, rho = prev.resample(state.z, grid), np.clip(prev.resample(state.rho, grid), 0, None)
-        sub = int(st.subsamples) if st.subsamples is not None else int(
-            min(4, max(1, math.ceil(max(grid.hx, grid.hy) / (2.0 * r0.sigma)))))
+        last = li == len(sizes) - 1
+        # coarse levels only start the next one: one moment-matched sample per cell
+        sub = int(st.subsamples) if st.subsamples is not None else (int(
+            min(4, max(1, math.ceil(max(grid.hx, grid.hy) / (2.0 * r0.sigma))))) if last else 1)
         cell = math.sqrt((grid.hx ** 2 + grid.hy ** 2) / 3.0) / sub
-        rl = _window(relay, grid, z, resp_hi, cell, 8.0 * slack, gate, slow_pad)
+        rl = _window(relay, grid, z, resp_hi, cell, 4.0 * slack, gate, slow_pad)
         y = rl.traces
         wgt, noise_src = noise_weights(y, rl.sigma, st.noise_sigma)
         if state is None:
@@ -235,7 +237,6 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         R = (lap.T @ lap).toarray() / h ** 2
         info = {"nodes": n, "rows": int(y.size), "traces": int(rl.n_traces), "subsamples": sub,
                 "solves": []}
-        last = li == len(sizes) - 1
         t_lvl = time.perf_counter()
         for rep in range(2 if (st.prior == "auto" and last) else 1):
             if st.solver == "lm":

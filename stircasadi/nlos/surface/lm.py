@@ -7,8 +7,8 @@ The NLP (``SurfaceModel`` unknowns theta = (z, rho, sigma[, tail], b)):
 
 Each iteration builds the exact Gauss-Newton matrix H = J^T W J and gradient g
 (``SurfaceModel.linearise``), freezes the bounded unknowns whose gradient pushes them outward
-(projected Newton; the depth of a node whose albedo is near zero is held: the data do not see
-it), solves (H + lam R + mu diag(H)) d = -g by Cholesky, limits the depth step
+(projected Newton; the depth of a node whose albedo and whose neighbours' albedos are near zero
+is held: the data do not see it), solves (H + lam R + mu diag(H)) d = -g by Cholesky, limits the depth step
 to ``slack``, projects onto the bounds and accepts the step when F decreases (mu / 3), else
 retries with mu x 4. It needs 5-20 iterations where IPOPT's limited-memory Hessian needs
 hundreds on the same problems (the GN matrix is dense: nodes couple through every trace that
@@ -98,8 +98,9 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
         dH = _damping(np.diag(H), N)
         # projected Newton: unknowns at a bound whose gradient pushes outward stay there
         free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
-        # the depth of a node the data do not see (albedo below 2 % of the largest) is not moved
-        free[:N] &= st.rho > 0.02 * max(float(np.max(st.rho)), 1e-300)
+        # the depth of a node the data do not see (albedo below 2 % of the largest, and its four
+        # neighbours' too: their normals depend on it) is not moved
+        free[:N] &= model.seen(st.rho)
         fi = np.flatnonzero(free)
         Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]
         accepted = False

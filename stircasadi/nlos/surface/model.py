@@ -9,18 +9,19 @@ Model of trace p, bin k (left edge t_k, width w):
     m_pk = b_pk + Phi[ sum_n rho_n A_pn B(t_k - tau_pn; s_pn) ]_k,   s_pn^2 = sigma^2 + c_pn^2,
 
 with the amplitude A (at unit albedo), delay tau and cell variance c^2 from ``physics.py`` at the
-node's position and normal (``grid.py``: the normal follows the depth gradients gx = Gx z,
-gy = Gy z), B the bin integral of the response's core and Phi its slow tails applied along each
+node's position and normal (``grid.py``: each node's cell is the second-order patch of its
+depth, gradients gx = Gx z, gy = Gy z and curvatures zxx, zyy, zxy from second differences), B the bin integral of the response's core and Phi its slow tails applied along each
 trace (``response.py``; the core's width and tail and the slow tails' weights are global
 unknowns). The background is b_pk = b0 + b1 q_p exp(-(t_k - t_0) / tau_b): a level plus, when
 the relay's own (direct) return q_p is given, that return's slow decay (b1 and tau_b fitted).
 
 Structure used for speed (the brief of issue 13: "profile first"). Every (trace, node) pair
 needs only three geometric numbers (A, tau, c^2) and their derivatives with respect to the
-node's (z, gx, gy): one small CasADi SX function, mapped over the pairs of a chunk of traces.
+node's patch (z, gx, gy, zxx, zyy, zxy): one small CasADi SX function, mapped over the pairs
+(and cell sub-samples) of a chunk of traces.
 The response then fills a window of bins per pair in NumPy (its value and derivatives come from
 F, f and f' at the window's bin edges), and the chunk's Jacobian rows are assembled densely
-over (z, rho, globals) with the chain rule through the sparse gradient operators. The
+over (z, rho, globals) with the chain rule through the sparse difference operators. The
 Gauss-Newton matrix is a sum of per-chunk products J^T W J (BLAS; float32 for the solver's
 steps, float64 for the Fisher covariance); without slow tails, rows that no pair reaches only
 carry the background; with them, Phi is applied to the chunk's columns along time.
@@ -41,6 +42,19 @@ from .physics import BRDFS, cell_variance, relay_amplitude, relay_delay
 from .response import Response
 
 __all__ = ["SurfaceModel", "SurfaceState"]
+
+
+def _gram_upper(J: np.ndarray) -> np.ndarray:
+    """The upper triangle of J^T J (float64) by the symmetric rank-k update (BLAS syrk: half
+    the products of a general matrix product), computed in J's precision; the lower triangle
+    holds no meaning (``_symmetrise`` once the chunks are summed)."""
+    from scipy.linalg import blas
+    f = blas.ssyrk if J.dtype == np.float32 else blas.dsyrk
+    return np.asarray(f(1.0, J.T, trans=0, lower=0), dtype=np.float64)   # J.T is Fortran-ordered
+
+
+def _symmetrise(U: np.ndarray) -> np.ndarray:
+    return np.triu(U) + np.triu(U, 1).T
 
 
 @dataclass
@@ -82,7 +96,7 @@ class SurfaceModel:
     """
 
     def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
-                 fit_shape: bool = True, chunk_bytes: int = 64 * 2 ** 20, subsamples: int = 1,
+                 fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
                  direct: np.ndarray | None = None):
         if brdf not in BRDFS:
             raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
@@ -96,7 +110,10 @@ class SurfaceModel:
         self.w, self.T, self.t_start = g.bin_width, g.n_bins, g.start
         self.P, self.N = relay.n_traces, grid.n
         self.Gx, self.Gy = grid.gradient_ops()
-        self.GxT, self.GyT = self.Gx.T.tocsr(), self.Gy.T.tocsr()
+        Dxx, Dyy, Dxy = grid.curvature_ops()
+        # the six local unknowns of a node's patch (z, gx, gy, zxx, zyy, zxy) from the depths
+        self.ops = [None, self.Gx, self.Gy, Dxx, Dyy, Dxy]
+        self.opsT = [None] + [o.T.tocsr() for o in self.ops[1:]]
         self.base = grid.base_points()
         self.t_left = g.start + np.arange(self.T) * self.w
         self.direct = None if direct is None else np.asarray(direct, float)
@@ -132,6 +149,17 @@ class SurfaceModel:
         return replace(like, z=np.array(theta[:N], float), rho=np.array(theta[N:2 * N], float),
                        betas=tuple(betas), **kw)
 
+    def seen(self, rho: np.ndarray, frac: float = 0.02) -> np.ndarray:
+        """Nodes whose depth the data constrain: their albedo or a 4-neighbour's (through the
+        normal) is at least ``frac`` of the largest."""
+        on = (np.asarray(rho) > frac * max(float(np.max(rho)), 1e-300)).reshape(self.grid.shape)
+        near = on.copy()
+        near[1:] |= on[:-1]
+        near[:-1] |= on[1:]
+        near[:, 1:] |= on[:, :-1]
+        near[:, :-1] |= on[:, 1:]
+        return near.ravel()
+
     def response(self, st: SurfaceState) -> Response:
         return Response(self.kind, st.sigma, st.tail if self.kind == "emg" else 0.0,
                         tuple(zip(self.taus, st.betas)))
@@ -151,12 +179,15 @@ class SurfaceModel:
     # ------------------------------------------------------------------ CasADi pair geometry
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
-        p = ca.SX.sym("p", 3)          # z, gx, gy of the node
+        p = ca.SX.sym("p", 6)          # z, gx, gy, zxx, zyy, zxy of the node
         q = ca.SX.sym("q", 19)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain dx dy
-        z, gx, gy = p[0], p[1], p[2]
+        z, gx0, gy0, zxx, zyy, zxy = (p[i] for i in range(6))
+        dx, dy = q[17], q[18]
+        # the sub-sample at in-plane offset (dx, dy) lies on the node's second-order patch
+        gx = gx0 + zxx * dx + zxy * dy
+        gy = gy0 + zxy * dx + zyy * dy
         s = ca.sqrt(1 + gx ** 2 + gy ** 2)
-        # the sub-sample at in-plane offset (dx, dy) from the node lies on the node's tangent plane
-        X = q[0:3] + (z + gx * q[17] + gy * q[18]) * wv
+        X = q[0:3] + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv
         nX = -(wv - gx * u - gy * v) / s
         hx, hy = self.grid.hx / self.sub, self.grid.hy / self.sub
         area = hx * hy * s
@@ -179,16 +210,17 @@ class SurfaceModel:
             self._maps[key] = (self.f_geo_jac if jac else self.f_geo).map(K)
         return self._maps[key]
 
-    def _geometry(self, t0: int, t1: int, z, gx, gy, jac: bool):
+    def _geometry(self, t0: int, t1: int, loc, jac: bool):
         """(K, S, 3) values (A, tau, c^2) of the K = traces x nodes pairs' S sub-samples and,
-        with ``jac``, (K, S, 3, 3) d(A, tau, c^2) / d(z, gx, gy)."""
+        with ``jac``, (K, S, 3, 6) d(A, tau, c^2) / d(z, gx, gy, zxx, zyy, zxy) (``loc``: those
+        six per node)."""
         r, N = self.relay, self.N
         S = len(self.offsets)
         nt = t1 - t0
         K = nt * N * S
         _, u, v, _ = self.grid.frame
-        Pm = np.empty((3, K))
-        for i, a in enumerate((z, gx, gy)):
+        Pm = np.empty((6, K))
+        for i, a in enumerate(loc):
             Pm[i] = np.tile(np.repeat(a, S), nt)
         Q = np.empty((19, K))
         off = np.tile(self.offsets.T, (1, N))                                # (2, N S)
@@ -203,7 +235,7 @@ class SurfaceModel:
         vals = out[:3].T.reshape(nt * N, S, 3)
         if not jac:
             return vals, None
-        return vals, out[3:].T.reshape(nt * N, S, 3, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
+        return vals, out[3:].T.reshape(nt * N, S, 6, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
@@ -231,9 +263,13 @@ class SurfaceModel:
             yield t0, min(t0 + nt, self.P)
 
     # ------------------------------------------------------------------ evaluation
-    def _core(self, st, resp, t0, t1, z, gx, gy):
+    def _local(self, z):
+        """The six local unknowns of every node's patch (``ops`` applied to the depths)."""
+        return [z] + [o @ z for o in self.ops[1:]]
+
+    def _core(self, st, resp, t0, t1, loc):
         """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
-        G, _ = self._geometry(t0, t1, z, gx, gy, False)
+        G, _ = self._geometry(t0, t1, loc, False)
         k0, n_win, _, Bw, _ = self._windows(st, resp, G[..., 1], G[..., 2], False, False)
         val = np.einsum("ks,ksw->kw", G[..., 0], Bw) * np.tile(st.rho, t1 - t0)[:, None]
         idx, ok = self._index(t0, t1, k0, n_win)
@@ -243,11 +279,11 @@ class SurfaceModel:
     def predict(self, st: SurfaceState) -> np.ndarray:
         """Model traces (P, T)."""
         resp = self.response(st)
-        gx, gy = self.Gx @ st.z, self.Gy @ st.z
+        loc = self._local(st.z)
         out = np.empty((self.P, self.T))
         S = len(self.offsets)
         for t0, t1 in self._chunks(self.N * S * 8 * 64):
-            G = self._core(st, resp, t0, t1, st.z, gx, gy)
+            G = self._core(st, resp, t0, t1, loc)
             out[t0:t1] = self.background(st, t0, t1)[0] + resp.tail_filter(G, self.w)
         return out
 
@@ -266,7 +302,7 @@ class SurfaceModel:
         N, T, w = self.N, self.T, self.w
         S = len(self.offsets)
         z, rho = st.z, st.rho
-        gx, gy = self.Gx @ z, self.Gy @ z
+        lz = self._local(z)
         need_tail = "tail" in self.glob
         dm = resp.d_mode()
         npar = self.npar
@@ -276,9 +312,9 @@ class SurfaceModel:
         chi2 = 0.0
         itemsize = np.dtype(dtype).itemsize
         slow = bool(resp.slow)
-        for t0, t1 in self._chunks(max(T * 4 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 6)):
+        for t0, t1 in self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
             nt = t1 - t0
-            G, Jg = self._geometry(t0, t1, z, gx, gy, True)
+            G, Jg = self._geometry(t0, t1, lz, True)
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
             k0, n_win, s, Bw, parts = self._windows(st, resp, tau, c2, True, need_tail)
             dF, dF1 = np.diff(parts[1], axis=2), np.diff(parts[2], axis=2)  # (K, S, n_win)
@@ -297,15 +333,15 @@ class SurfaceModel:
             wc = wgt[t0:t1]
             m[t0:t1] = mc
             chi2 += float(np.sum(wc * rc * rc))
-            # local derivatives (K, n_win), summed over the sub-samples: z, gx, gy, rho
+            # local derivatives (K, n_win), summed over the sub-samples: the six patch unknowns, rho
             sdF1 = s[:, :, None] * dF1
-            ds = Jg[:, :, 2, :] / (2.0 * s[:, :, None])                    # d s / d(z, gx, gy)
-            loc = np.empty((4, len(k0), n_win))
-            for c in range(3):
+            ds = Jg[:, :, 2, :] / (2.0 * s[:, :, None])                    # d s / d(patch)
+            loc = np.empty((7, len(k0), n_win))
+            for c in range(6):
                 term = rr * Jg[:, :, 0, c, None] * Bw + Ar * (sdF1 * ds[:, :, c, None]
                                                              - dF * Jg[:, :, 1, c, None])
                 loc[c] = term.sum(axis=1)
-            loc[3] = np.sum(A[:, :, None] * Bw, axis=1)
+            loc[6] = np.sum(A[:, :, None] * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
             pre, post = [], []
@@ -329,14 +365,14 @@ class SurfaceModel:
             ef = resp.tail_filter(e, w, adjoint=True)
             node = np.broadcast_to(np.tile(np.arange(N), nt)[:, None], loc.shape[1:])[ok]
             er = ef.ravel()[rows_loc]
-            gl = np.stack([np.bincount(node, loc[c][ok] * er, minlength=N) for c in range(4)])
-            g[:N] += gl[0] + self.GxT @ gl[1] + self.GyT @ gl[2]
-            g[N:2 * N] += gl[3]
+            gl = np.stack([np.bincount(node, loc[c][ok] * er, minlength=N) for c in range(7)])
+            g[:N] += gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
+            g[N:2 * N] += gl[6]
             gcols = [float(np.sum(c * ef)) for c in pre] + [float(np.sum(c * e)) for c in post]
             g[2 * N:] += gcols
             if need_h:
                 H += self._gram(nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype)
-        return {"m": m, "chi2": chi2, "g": g, "H": H}
+        return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}
 
     def _gram(self, nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype) -> np.ndarray:
         """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
@@ -353,21 +389,22 @@ class SurfaceModel:
         rmap = np.full(nt * T, -1)
         rmap[ru] = np.arange(len(ru))
         R = len(ru)
-        Jd = np.zeros((R, 4 * N), dtype=dtype)
-        flat = rmap[rows_loc] * (4 * N) + node
-        for c in range(4):
+        Jd = np.zeros((R, 7 * N), dtype=dtype)
+        flat = rmap[rows_loc] * (7 * N) + node
+        for c in range(7):
             Jd.ravel()[flat + c * N] = loc[c][ok]
-        Jz = Jd[:, :N] + (self.GxT @ Jd[:, N:2 * N].T).T + (self.GyT @ Jd[:, 2 * N:3 * N].T).T
-        cols = [Jz.astype(dtype, copy=False), Jd[:, 3 * N:]] + [c.ravel()[ru][:, None].astype(dtype) for c in pre]
+        Jz = Jd[:, :N].copy()
+        for c in range(1, 6):
+            Jz += (self.opsT[c] @ Jd[:, c * N:(c + 1) * N].T).T
+        cols = [Jz, Jd[:, 6 * N:]] + [c.ravel()[ru][:, None].astype(dtype) for c in pre]
         del Jd, Jz
         Jc = np.hstack(cols)
         del cols
         if resp.slow:
-            Jc = resp.tail_filter(Jc.reshape(nt, T, -1).transpose(0, 2, 1), self.w)
-            Jc = np.ascontiguousarray(Jc.transpose(0, 2, 1).reshape(nt * T, -1), dtype=dtype)
+            Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
         Jc = np.hstack([Jc] + [c.ravel()[ru][:, None].astype(dtype) for c in post])
         Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
-        H = (Jc.T @ Jc).astype(np.float64)
+        H = _gram_upper(Jc)
         if not resp.slow:
             rest = np.ones(nt * T, bool)
             rest[ru] = False
@@ -378,7 +415,7 @@ class SurfaceModel:
             B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
             if B is not None:
                 idx = 2 * N + np.array(bi)
-                H[np.ix_(idx, idx)] += (B * wr[:, None]).T @ B
+                H[np.ix_(idx, idx)] += np.triu((B * wr[:, None]).T @ B)
         return H
 
     def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:

@@ -196,14 +196,14 @@ class Response:
         return float(x[above[-1]] - x[above[0]])
 
     # ------------------------------------------------------------------ the slow tails, per trace
-    def tail_filter(self, G: np.ndarray, w: float, adjoint: bool = False) -> np.ndarray:
-        """Apply [(1 - sum beta) + sum beta_i E_i] along the last axis of ``G`` (binned core
+    def tail_filter(self, G: np.ndarray, w: float, adjoint: bool = False, axis: int = -1) -> np.ndarray:
+        """Apply [(1 - sum beta) + sum beta_i E_i] along ``axis`` of ``G`` (binned core
         deposits, bin width ``w``); ``adjoint`` applies its transpose."""
         if not self.slow:
             return G
         out = (1.0 - sum(b for _, b in self.slow)) * G
         for tau, beta in self.slow:
-            out = out + beta * exp_filter(G, tau, w, adjoint)
+            out += beta * exp_filter(G, tau, w, adjoint, axis)
         return out
 
     def describe(self) -> str:
@@ -213,15 +213,19 @@ class Response:
         return core + slow + " (mode-centred)"
 
 
-def exp_filter(G: np.ndarray, tau: float, w: float, adjoint: bool = False) -> np.ndarray:
-    """E(G) of the module docstring along the last axis (``adjoint``: its transpose)."""
+def exp_filter(G: np.ndarray, tau: float, w: float, adjoint: bool = False, axis: int = -1) -> np.ndarray:
+    """E(G) of the module docstring along ``axis`` (``adjoint``: its transpose)."""
     r = math.exp(-w / tau)
     K0 = 1.0 - (tau / w) * (1.0 - r)
     c = (tau / w) * (1.0 - r) ** 2
+    dt = G.dtype if G.dtype in (np.float32, np.float64) else np.float64
+    b, a = np.array([0.0, c], dt), np.array([1.0, -r], dt)
     if adjoint:
-        Gr = G[..., ::-1]
-        return (K0 * Gr + lfilter([0.0, c], [1.0, -r], Gr, axis=-1))[..., ::-1]
-    return K0 * G + lfilter([0.0, c], [1.0, -r], G, axis=-1)
+        Gr = np.flip(G, axis)
+        return np.flip(K0 * Gr + lfilter(b, a, Gr, axis=axis), axis)
+    out = lfilter(b, a, G, axis=axis)
+    out += K0 * G
+    return out
 
 
 def _mode(resp: Response) -> float:

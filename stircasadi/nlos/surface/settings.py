@@ -64,11 +64,12 @@ class SurfaceSettings:
     noise_sigma: float | None = None
     #: q: each node's cell is integrated by q x q sub-samples (its delay spread otherwise enters
     #: as one moment-matched Gaussian, exact only for cells narrower than the response); None:
-    #: the smallest q with a sub-cell side below 2 response sigmas, at most 4
+    #: the smallest q with a sub-cell side below 2 response sigmas, at most 4, at the finest
+    #: level (1 at the coarser levels, which only start the next one)
     subsamples: int | None = None
     #: memory of one chunk of Jacobian rows (MiB); the fit's peak memory is a few chunks plus
     #: the (2 nodes + 4)^2 Gauss-Newton matrix
-    chunk_mb: float = 64.0
+    chunk_mb: float = 192.0
     #: precision of the Gauss-Newton products of the solver's steps ("float32" or "float64");
     #: the Fisher covariance is always accumulated from float64 products
     step_precision: str = "float32"
