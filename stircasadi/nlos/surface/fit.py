@@ -206,7 +206,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         last = li == len(sizes) - 1
         # coarse levels only start the next one: one moment-matched sample per cell
         sub = int(st.subsamples) if st.subsamples is not None else (int(
-            min(4, max(1, math.ceil(max(grid.hx, grid.hy) / (2.0 * r0.sigma))))) if last else 1)
+            min(2, max(1, math.ceil(max(grid.hx, grid.hy) / (2.0 * r0.sigma))))) if last else 1)
         cell = math.sqrt((grid.hx ** 2 + grid.hy ** 2) / 3.0) / sub
         rl = _window(relay, grid, z, resp_hi, cell, 4.0 * slack, gate, slow_pad)
         y = rl.traces

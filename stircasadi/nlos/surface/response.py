@@ -176,8 +176,8 @@ class Response:
                 continue
             h = 1e-5 * (v if v > 0 else 1e-3)
             lo, hi = list(base), list(base)
-            lo[i], hi[i] = v - h, v + h
-            out[i] = (_mode(self._from(lo)) - _mode(self._from(hi))) / (-2 * h)
+            lo[i], hi[i] = max(v - h, 0.0), v + h          # weights stay >= 0 at their bound
+            out[i] = (_mode(self._from(hi)) - _mode(self._from(lo))) / (hi[i] - lo[i])
         return out
 
     def _from(self, vals) -> "Response":

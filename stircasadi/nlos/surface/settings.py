@@ -64,8 +64,8 @@ class SurfaceSettings:
     noise_sigma: float | None = None
     #: q: each node's cell is integrated by q x q sub-samples (its delay spread otherwise enters
     #: as one moment-matched Gaussian, exact only for cells narrower than the response); None:
-    #: the smallest q with a sub-cell side below 2 response sigmas, at most 4, at the finest
-    #: level (1 at the coarser levels, which only start the next one)
+    #: the smallest q with a sub-cell side below 2 response sigmas, at most 2 (the cost grows as
+    #: q^2), at the finest level (1 at the coarser levels, which only start the next one)
     subsamples: int | None = None
     #: memory of one chunk of Jacobian rows (MiB); the fit's peak memory is a few chunks plus
     #: the (2 nodes + 4)^2 Gauss-Newton matrix
