@@ -1,17 +1,23 @@
-"""Benchmark: the project's LCT, f-k and (filtered) backprojection against y-tal 0.20's f-k
-(and optionally bp) on the Stanford 40 cm charts, and the surface fit's time and memory against
-grid size. Prints a table and writes benchmarks/results/nlos.json.
+"""Benchmark: the project's LCT, f-k and (filtered) backprojection against y-tal 0.20's f-k and
+bp on the Stanford 40 cm charts, and the surface fit's time and memory against grid size. Prints
+a table and writes benchmarks/results/nlos.json.
 
-    python benchmarks/nlos.py [--ytal-bp] [--surface 8,16,32] [--charts resolution,dot]
+    PYTHONPATH=. /work/venvs/nlos/bin/python benchmarks/nlos.py      # y-tal needs numpy < 2
+    python benchmarks/nlos.py --no-ytal [--surface 8,16,32] [--charts resolution,dot]
 
 Peak memory is tracemalloc's peak of Python/NumPy allocations during the call (y-tal and ours
-alike). Depth: median depth of the columns whose volume maximum exceeds 30 % of the brightest
-(y-tal's volume read with the same Maps code). y-tal is the ``bench`` extra (pip y-tal).
+alike; CasADi's own small buffers are not counted). Depth: median depth of the columns whose
+volume maximum exceeds 30 % of the brightest (y-tal's volumes read with the same Maps code).
+y-tal's bp is run on a 16 x 16 x 61 volume (2.4 GiB; its 32 x 32 x 121 volume needs ~15 GiB),
+ours on the same grid and on 32 x 32 x 121 and 64 x 64 x 121. The surface fit runs on the
+resolution chart (wall_step 4: 16 x 16 traces of 16 ps, the measured response and background
+decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 import tracemalloc
 from pathlib import Path
@@ -43,14 +49,29 @@ def depth_of(vol: Volume) -> float:
 
 
 def ytal_capture(relay, factor=4):
+    """y-tal's capture object for a confocal relay (t, x, y order), and our grid."""
     from stircasadi.nlos.confocal import prepare
     data, cg, w, gate = prepare(relay, VolumeSettings(bin_factor=factor))
-    N = data.shape[0]
     yy, xx = np.meshgrid(cg.y, cg.x, indexing="ij")
     grid = np.stack([xx, yy, np.zeros_like(xx)], axis=-1).transpose(1, 0, 2)  # (x, y, 3)
     H = np.ascontiguousarray(np.transpose(data.astype(np.float64), (2, 1, 0)))  # (t, x, y)
-    return SimpleNamespace(H=H, sensor_grid_xyz=grid, delta_t=w, is_confocal=lambda: True,
-                           laser_grid_xyz=grid, t_start=0.0), cg, w
+    try:
+        from tal.enums import GridFormat, HFormat
+        from tal.io.capture_data import NLOSCaptureData
+    except ImportError:
+        return SimpleNamespace(H=H, sensor_grid_xyz=grid, delta_t=w, is_confocal=lambda: True,
+                               laser_grid_xyz=grid, t_start=0.0), cg, w
+    d = NLOSCaptureData()
+    d.H, d.H_format = H, HFormat.T_Sx_Sy
+    d.sensor_grid_xyz = d.laser_grid_xyz = grid
+    d.sensor_grid_format = d.laser_grid_format = GridFormat.X_Y_3
+    nrm = np.zeros_like(grid)
+    nrm[..., 2] = 1.0
+    d.sensor_grid_normals = d.laser_grid_normals = nrm
+    d.sensor_xyz = d.laser_xyz = np.array([0.0, 0.0, 1.0])
+    d.delta_t, d.t_start, d.t_accounts_first_and_last_bounces = w, 0.0, False
+    d.scene_info = {"is_confocal": True}
+    return d, cg, w
 
 
 def ytal_volume(vol_tyx, cg, w):
@@ -58,16 +79,46 @@ def ytal_volume(vol_tyx, cg, w):
     return Volume(np.transpose(vol_tyx, (0, 2, 1)), cg.x, cg.y, (np.arange(M) + 0.5) * w / 2, cg.frame, "ytal")
 
 
+def ytal_bp(cap, cg, n, nz):
+    import tal.reconstruct.bp as bp
+    from tal.enums import CameraSystem, VolumeFormat
+    lin = np.linspace(cg.x[0], cg.x[-1], n)
+    zs = np.linspace(0.2, 0.7, nz)
+    V = np.stack(np.meshgrid(lin, lin, zs, indexing="ij"), axis=-1)
+    out = np.asarray(bp.solve(cap, volume_xyz=V, volume_format=VolumeFormat.X_Y_Z_3,
+                              camera_system=CameraSystem.DIRECT_LIGHT, progress=False))   # (x, y, z)
+    return Volume(np.transpose(out, (2, 1, 0)).astype(np.float32), lin, lin, zs, cg.frame, "ytal-bp")
+
+
+def plane_of(s):
+    """Albedo-weighted plane through the surface mask (3 MAD outliers dropped twice): centre
+    depth on the scan's axis and tilt from the wall normal (deg)."""
+    m = s.mask
+    P, wts = s.points()[m], s.albedo[m]
+    for _ in range(3):
+        c = np.average(P, axis=0, weights=wts)
+        n = np.linalg.svd((P - c) * np.sqrt(wts)[:, None], full_matrices=False)[2][-1]
+        n = n if n[2] < 0 else -n
+        d = (P - c) @ n
+        keep = np.abs(d - np.median(d)) < 3 * (1.4826 * np.median(np.abs(d - np.median(d))) + 1e-4)
+        P, wts = P[keep], wts[keep]
+    z0 = c[2] + (n[0] * c[0] + n[1] * c[1]) / n[2]
+    return float(z0), float(math.degrees(math.acos(min(1.0, -n[2]))))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--charts", default="resolution,dot")
-    ap.add_argument("--ytal-bp", action="store_true", help="also run y-tal's bp (15 GiB, minutes)")
     ap.add_argument("--no-ytal", action="store_true")
-    ap.add_argument("--no-bp", action="store_true", help="skip our backprojection (minutes on 2 cores)")
-    ap.add_argument("--surface", default="8,16", help="surface grid sizes (nodes per side)")
+    ap.add_argument("--no-bp", action="store_true", help="skip the backprojections")
+    ap.add_argument("--surface", default="8,16,32", help="surface grid sizes (nodes per side)")
     a = ap.parse_args(argv)
     rows = []
     folder = data_dir() / "otoole2018_confocal"
+
+    def bp_settings(n, nz):
+        return VolumeSettings(bin_factor=4, n_lateral=n, z_range=(0.2, 0.7), n_depth=nz)
+
     for name in a.charts.split(","):
         f = folder / CHARTS[name]
         if not f.exists():
@@ -75,13 +126,11 @@ def main(argv=None):
             continue
         relay = from_capture(read_stanford_lct(f))
         st = VolumeSettings(bin_factor=4, diffuse=False)
-        for label, fn in (("lct 16ps", lambda: lct(relay, st)), ("fk 16ps", lambda: fk(relay, st)),
-                          ("fbp 32x32", lambda: backprojection(relay, VolumeSettings(
-                              bin_factor=4, n_lateral=32, z_range=(0.2, 0.7), n_depth=121))),
-                          ("fbp 64x64", lambda: backprojection(relay, VolumeSettings(
-                              bin_factor=4, n_lateral=64, z_range=(0.2, 0.7), n_depth=121)))):
-            if a.no_bp and label.startswith("fbp"):
-                continue
+        runs = [("lct 16ps", lambda: lct(relay, st)), ("fk 16ps", lambda: fk(relay, st))]
+        if not a.no_bp:
+            runs += [(f"fbp {n}x{n}x{nz}", (lambda n=n, nz=nz: backprojection(relay, bp_settings(n, nz))))
+                     for n, nz in ((16, 61), (32, 121), (64, 121))]
+        for label, fn in runs:
             vol, dt, gib = measure(fn)
             rows.append({"chart": name, "method": label, "time_s": dt, "peak_gib": gib, "depth_m": depth_of(vol)})
             print(rows[-1], flush=True)
@@ -89,28 +138,37 @@ def main(argv=None):
             try:
                 import tal.reconstruct.fk as tfk
             except ImportError as exc:
-                print(f"y-tal not installed ({exc}); pip install y-tal==0.20")
+                print(f"y-tal not installed ({exc}); pip install y-tal==0.20 (numpy < 2)")
             else:
                 cap, cg, w = ytal_capture(relay)
                 v, dt, gib = measure(lambda: tfk.solve(cap))
                 rows.append({"chart": name, "method": "y-tal fk 16ps", "time_s": dt, "peak_gib": gib,
                              "depth_m": depth_of(ytal_volume(np.asarray(v), cg, w))})
                 print(rows[-1], flush=True)
-    cap = read_stanford_lct(folder / CHARTS["resolution"]) if (folder / CHARTS["resolution"]).exists() else None
-    if cap is not None:
+                if not a.no_bp:
+                    v, dt, gib = measure(lambda: ytal_bp(cap, cg, 16, 61))
+                    rows.append({"chart": name, "method": "y-tal bp 16x16x61", "time_s": dt, "peak_gib": gib,
+                                 "depth_m": depth_of(v)})
+                    print(rows[-1], flush=True)
+    f = folder / CHARTS["resolution"]
+    if f.exists():
+        cap = read_stanford_lct(f)
         for n in [int(x) for x in a.surface.split(",") if x]:
+            levels = max(1, int(round(math.log2(n / 8))) + 1)
             est, dt, gib = measure(lambda: estimate_capture(
-                cap, method="surface", bin_factor=4, diffuse=False, wall_step=max(1, 64 // (2 * n)),
-                n_nodes=n, levels=1, t_max=1.2, max_iter=15))
+                cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72, wall_step=4,
+                n_nodes=n, levels=levels, max_iter=12))
             s = est.surface
+            z0, tilt = plane_of(s)
             rows.append({"chart": "resolution", "method": f"surface {n}x{n}", "time_s": dt, "peak_gib": gib,
-                         "depth_m": float(np.median(s.depth[s.mask])) if s.mask.any() else None,
-                         "chi2_dof": s.chi2_dof, "success": s.success})
+                         "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
+                         "levels": [{"nodes": lv["nodes"], "iterations": lv["solves"][-1]["iterations"],
+                                     "wall_time_s": lv["wall_time_s"]} for lv in s.levels]})
             print(rows[-1], flush=True)
-    print(f"\n{'chart':<11}{'method':<16}{'time s':>9}{'peak GiB':>10}{'depth m':>10}")
+    print(f"\n{'chart':<11}{'method':<20}{'time s':>9}{'peak GiB':>10}{'depth m':>10}")
     for r in rows:
         d = r["depth_m"]
-        print(f"{r['chart']:<11}{r['method']:<16}{r['time_s']:>9.2f}{r['peak_gib']:>10.3f}"
+        print(f"{r['chart']:<11}{r['method']:<20}{r['time_s']:>9.2f}{r['peak_gib']:>10.3f}"
               f"{(d if d is not None else float('nan')):>10.4f}")
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)

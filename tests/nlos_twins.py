@@ -22,11 +22,13 @@ from stircasadi.transport import simulate
 WALL_RHO = 0.8
 
 
-def surface_patches(depth_fn, half: float, n: int, rho=0.7, mask=None, normal_fn=None):
+def surface_patches(depth_fn, half: float, n: int, rho=0.7, mask=None, normal_fn=None, cells: bool = False):
     """Hidden patches on z = depth_fn(x, y) over [-half, half]^2, n x n nodes, facing the wall.
+    With ``cells`` the patches sit at the centres of n x n cells tiling the square (a continuous
+    surface of exactly that support), else on its corners' grid.
 
     Returns (patches, truth dict with positions, normals, areas, albedo, (n, n) grids)."""
-    lin = np.linspace(-half, half, n)
+    lin = (np.linspace(-half, half, n + 1)[:-1] + half / n) if cells else np.linspace(-half, half, n)
     yy, xx = np.meshgrid(lin, lin, indexing="ij")
     zz = depth_fn(xx, yy)
     h = lin[1] - lin[0]
@@ -45,6 +47,49 @@ def surface_patches(depth_fn, half: float, n: int, rho=0.7, mask=None, normal_fn
     truth = {"x": lin, "y": lin, "depth": zz, "normal": nrm, "albedo": np.where(keep, rho_map, 0.0),
              "mask": keep & (rho_map > 0), "area": area}
     return patches, truth
+
+
+def letter_mask(rows, n_sub: int) -> np.ndarray:
+    """A bitmap (list of strings, '#' = surface, first string = largest y) magnified so each
+    character covers n_sub x n_sub patches; row 0 of the result is the smallest y."""
+    bm = np.array([[c == "#" for c in r] for r in rows[::-1]])
+    return np.kron(bm, np.ones((n_sub, n_sub), bool))
+
+
+def twin_fit(cap, truth, half: float, n: int, gain: float | None = (WALL_RHO / np.pi) ** 2,
+             sub: int = 3, gate: float = 0.2, **options):
+    """Fit the twin's surface on n x n nodes whose cells tile [-half, half]^2 (the rendered
+    support, so no cell straddles the object's edge) and compare with the truth at the nodes.
+
+    Returns (SurfaceResult, metrics dict: depth errors, normal errors (deg), albedo errors and
+    their std on the nodes that hold surface, and the off-support albedo)."""
+    from stircasadi.nlos import VolumeSettings, backprojection, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+    from stircasadi.nlos.surface.grid import DepthGrid
+
+    rl = from_capture(cap)
+    if gain is not None:
+        rl.gain[:] = gain
+    vol = (lct if rl.confocal else backprojection)(rl, VolumeSettings(gate_m=gate, n_lateral=16))
+    h = 2 * half / n
+    e = (-half + h / 2, half - h / 2)
+    st = SurfaceSettings(n_nodes=n, levels=1, extent=e + e, subsamples=sub, known_gain=gain is not None,
+                         max_iter=40, **options)
+    res = fit_surface(rl, vol.maps(), st, gate=gate)
+    tg = DepthGrid(truth["x"], truth["y"], res.grid.frame)
+    # truth per node: the cell's patches (the nodes' cells tile the truth's patch grid)
+    k = len(truth["x"]) // n
+    cell = lambda a: a.reshape(n, k, n, k, *a.shape[2:]).mean(axis=(1, 3))
+    alb = cell(truth["albedo"])
+    full = cell(truth["mask"].astype(float)) > 0.999
+    zt = tg.resample(truth["depth"], res.grid).reshape(res.shape)
+    nt = cell(truth["normal"])
+    nt /= np.linalg.norm(nt, axis=-1, keepdims=True)
+    err = res.depth - zt
+    ang = np.degrees(np.arccos(np.clip(np.sum(res.normals * nt, axis=-1), -1, 1)))
+    return res, {"on": full, "depth_err": err[full], "depth_std": res.depth_std[full],
+                 "normal_deg": ang[full], "albedo_err": (res.albedo - alb)[full],
+                 "albedo_std": res.albedo_std[full], "albedo_off": res.albedo[~full & (alb == 0)]}
 
 
 def wall_patches(n: int, half: float):

@@ -94,6 +94,8 @@ def json_dict(est) -> dict:
                      "maps": {"depth": _l(s.depth), "depth_std": _l(s.depth_std), "albedo": _l(s.albedo),
                               "albedo_std": _l(s.albedo_std), "mask": s.mask.astype(int).tolist()},
                      "irf_fwhm": s.fwhm_irf, "irf_sigma": s.sigma_irf, "irf_sigma_std": _f(s.sigma_irf_std),
+                     "response": s.response, "irf_tail": _f(s.tail), "irf_tail_std": _f(s.tail_std),
+                     "brdf": s.brdf,
                      "background": s.background, "gain": s.gain, "albedo_relative": s.albedo_relative,
                      "prior_weight": s.prior_weight, "prior_method": s.prior_method,
                      "chi2_dof": s.chi2_dof, "dof": s.dof, "levels": s.levels})

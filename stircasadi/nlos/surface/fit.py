@@ -1,43 +1,53 @@
 """Hidden surfaces by analysis by synthesis: a depth map and albedo per node fitted to the full
-third-bounce transient (CasADi + IPOPT), coarse to fine, with Fisher error bars.
+third-bounce transient (CasADi derivatives, Levenberg-Marquardt or IPOPT), coarse to fine, with
+Fisher error bars.
 
 When to use: after a volumetric reconstruction (its depth / albedo / mask maps initialise the
 fit) on any relay: confocal or paired wall scans, or a full STIR's visible patches (Fig. 13).
 
 Steps
 -----
-1. Initial surface: the volume's depth map inside its mask (the median masked depth outside),
-   its albedo map, resampled on a grid over the mask's bounding box (``SurfaceSettings``).
-2. Noise: the relay's sigma, Poisson weights 1 / max(y, 1) for counts, or a MAD estimate.
+1. Initial surface: the volume's depth map where it holds a surface (its mask, or an albedo
+   above ``init_fraction`` of the largest; the median of those depths elsewhere), its albedo
+   map, resampled on a grid over that support's bounding box (``SurfaceSettings``).
+2. Noise: the relay's sigma, Poisson weights 1 / max(y3, 1) for counts (y3: the counts
+   averaged over 3 bins, which keeps the weights from favouring low fluctuations), or a MAD
+   estimate.
 3. Gain: with an unknown relay gain (real scans) one global factor scales the model to the data
    at the initial surface; albedos are then relative (``albedo_relative``).
-4. Per level (coarse to fine): IPOPT on the level's NLP (``solve.py``), re-centred while
-   depths reach the allowed slack; then the Gauss-Newton matrix H = J^T W J; with
-   ``prior="auto"`` the smoothness weight is the largest for which the linearised whitened
-   chi^2 stays within max(chi2_min, dof) (1 + 2 sqrt(2 / dof)) (discrepancy principle), and
-   the level is re-solved when the weight changed.
-5. Fisher covariance (H + lam R)^-1 (R the prior's operator), std maps of depth, albedo and
-   normal components (normals linearised through the depth gradients), inflated by
-   sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo is ``mask_z`` std above 0.
+4. Per level (coarse to fine, each started from the previous level's maps interpolated):
+   the time window of the level's paths, then LM (``lm.py``) or IPOPT (``solve.py``) on the
+   level's NLP. With ``prior="auto"`` the smoothness weight at the last level is the largest
+   for which the linearised whitened chi^2 stays within max(chi2_min, dof) (1 + 2 sqrt(2 / dof))
+   (discrepancy principle), and the level is re-solved when the weight changed.
+5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
+   operator), std maps of depth, albedo and normal components (normals linearised through the
+   depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
+   is ``mask_z`` std above 0 and above a tenth of the largest.
 
-Neglects what ``physics.py`` neglects; one background level for all bins; a Gaussian IRF.
+Neglects what ``physics.py`` and ``response.py`` neglect; one background level for all bins.
 """
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 from ...errors import ReconstructionError
+from ...irf import GaussianIRF
 from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid
-from .model import SurfaceModel
+from .lm import Bounds, solve_lm
+from .direct import direct_return
+from .model import SurfaceModel, SurfaceState
+from .response import Response
 from .result import SurfaceResult
 from .settings import SurfaceSettings
-from .lm import solve_lm
 from .solve import solve_level
 
 __all__ = ["fit_surface", "noise_weights"]
@@ -52,26 +62,34 @@ def noise_weights(y: np.ndarray, sigma, override: float | None = None) -> tuple[
     if sigma is not None and np.all(np.asarray(sigma) > 0):
         return np.broadcast_to(1.0 / np.asarray(sigma, float) ** 2, y.shape).copy(), "relay sigma"
     if np.all(y >= 0) and np.allclose(y, np.round(y)) and y.max() > 1:
-        return 1.0 / np.maximum(y, 1.0), "poisson (counts)"
+        return 1.0 / np.maximum(uniform_filter1d(y, 3, axis=1), 1.0), "poisson (counts)"
     d = np.diff(y, axis=1).ravel()
     s = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
     s = max(s, 1e-6 * float(np.max(np.abs(y))), 1e-300)
     return np.full(y.shape, 1.0 / s ** 2), "MAD of first differences"
 
 
-def _initial(maps: Maps, grid: DepthGrid):
-    d = np.where(maps.mask, maps.depth, np.median(maps.depth[maps.mask]) if maps.mask.any()
-                 else np.median(maps.depth))
+def _support(maps: Maps, st: SurfaceSettings) -> np.ndarray:
+    """Columns of the initialiser that hold a surface: its mask or an albedo of at least
+    ``init_fraction`` of the largest (a volume's mask keeps only columns far above the median,
+    which on a scan full of returns leaves most of the object out)."""
+    return maps.mask | (maps.albedo >= st.init_fraction * max(float(maps.albedo.max()), 1e-300))
+
+
+def _initial(maps: Maps, grid: DepthGrid, st: SurfaceSettings):
+    sup = _support(maps, st)
+    d = np.where(sup, maps.depth, np.median(maps.depth[sup]) if sup.any() else np.median(maps.depth))
     src = DepthGrid(maps.x, maps.y, maps.frame)
     z0 = src.resample(d, grid)
-    a0 = src.resample(np.where(maps.mask, maps.albedo, 0.05 * maps.albedo.max()), grid)
+    a0 = src.resample(np.where(sup, maps.albedo, 0.05 * maps.albedo.max()), grid)
     return z0, np.clip(a0, 0.0, None)
 
 
 def _extent(maps: Maps, st: SurfaceSettings):
     if st.extent is not None:
         return st.extent
-    m = maps.mask if maps.mask.any() else np.ones_like(maps.mask)
+    m = _support(maps, st)
+    m = m if m.any() else np.ones_like(m)
     iy, ix = np.nonzero(m)
     x0, x1 = maps.x[ix.min()], maps.x[ix.max()]
     y0, y1 = maps.y[iy.min()], maps.y[iy.max()]
@@ -80,38 +98,58 @@ def _extent(maps: Maps, st: SurfaceSettings):
     return (x0 - gx, x1 + gx, y0 - gy, y1 + gy)
 
 
-def _sigma0(relay: Relay, st: SurfaceSettings) -> float:
+def _response0(relay: Relay, st: SurfaceSettings, gate):
+    """The starting response and the direct return's per-trace amplitude (or None): the
+    relay's Gaussian IRF; else the response measured on the relay's direct return
+    (``direct.py``); else a single-photon emg of 1.5 bins."""
+    irf = relay.irf
+    gauss = isinstance(irf, GaussianIRF)
+    if st.response == "auto" and not gauss and st.direct != "none":
+        dr = direct_return(relay, gate)
+        if dr is not None:
+            r = dr.response
+            if st.sigma0 is not None or st.tail0 is not None:
+                r = r.with_params(st.sigma0 or r.sigma, st.tail0 if r.kind == "emg" else None)
+            return r, dr.q
+    kind = st.response if st.response != "auto" else ("gaussian" if gauss else "emg")
     if st.sigma0 is not None:
-        return float(st.sigma0)
-    if relay.irf is not None and getattr(relay.irf, "sigma", 0) > 0:
-        return float(relay.irf.sigma)
-    return 1.5 * relay.grid.bin_width
+        sig = float(st.sigma0)
+    elif irf is not None and getattr(irf, "sigma", 0) > 0:
+        sig = float(irf.sigma) / (1.0 if kind == "gaussian" else math.sqrt(2.0))
+    else:
+        sig = 1.5 * relay.grid.bin_width
+    tail = (float(st.tail0) if st.tail0 is not None else 2.0 * sig) if kind == "emg" else 0.0
+    return Response(kind, sig, tail), None
 
 
-def _window(relay: Relay, grid: DepthGrid, z0, slack, sig, gate):
+def _window(relay: Relay, grid: DepthGrid, z0, resp_hi: Response, cell: float, pad: float, gate,
+            slow_pad: float = 0.0):
+    """The relay cut to the bins the level's paths can reach (chunked over traces)."""
     X, _, _ = grid.geometry(z0)
-    d = (np.linalg.norm(relay.L[:, None] - X[None], axis=-1) + np.linalg.norm(relay.D[:, None] - X[None], axis=-1)
-         + relay.leg[:, None])
-    pad = 6 * 2 * sig + 2 * slack + 2 * relay.grid.bin_width
-    lo = max(float(d.min()) - pad, gate if gate is not None else -np.inf)
-    return relay.window(lo, float(d.max()) + pad)
+    lo_d, hi_d = np.inf, -np.inf
+    for t0 in range(0, relay.n_traces, 256):
+        sl = slice(t0, t0 + 256)
+        d = (np.linalg.norm(relay.L[sl, None] - X[None], axis=-1)
+             + np.linalg.norm(relay.D[sl, None] - X[None], axis=-1) + relay.leg[sl, None])
+        lo_d, hi_d = min(lo_d, float(d.min())), max(hi_d, float(d.max()))
+    a, b = resp_hi.support(math.sqrt(resp_hi.sigma ** 2 + cell ** 2))
+    lo = max(lo_d + a - pad, gate if gate is not None else -np.inf)
+    return relay.window(lo, hi_d + b + pad + slow_pad)
 
 
-def _choose_lambda(H, g, chi2, dof, R, z_sl, lam_now):
+def _choose_lambda(H, g, chi2, dof, R, N, lam_now):
     """Discrepancy principle on the linearised problem at the current solution."""
     npar = H.shape[0]
     Rf = np.zeros_like(H)
-    Rf[z_sl, z_sl] = R
-    hz = float(np.trace(H[z_sl, z_sl])) / max(np.trace(R), 1e-300)
+    Rf[:N, :N] = R
+    hz = float(np.trace(H[:N, :N])) / max(np.trace(R), 1e-300)
     cands = np.concatenate([[0.0], hz * np.logspace(-8, 2, 41)])
     ridge = 1e-10 * float(np.trace(H)) / npar + 1e-300
     out = []
-    theta_prior_grad = None
     for lam in cands:
         A = H + lam * Rf + ridge * np.eye(npar)
-        rhs = g + (lam - lam_now) * (theta_prior_grad if theta_prior_grad is not None else 0.0)
         try:
-            dlt = -np.linalg.solve(A, rhs)
+            dlt = -np.linalg.solve(A, g + (lam - lam_now) * 0.0)
         except np.linalg.LinAlgError:
             continue
         out.append((lam, chi2 + 2 * g @ dlt + dlt @ H @ dlt))
@@ -143,129 +181,152 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     t_start = time.perf_counter()
     if relay.n_traces < 4:
         raise ReconstructionError(f"A surface fit needs at least 4 traces; got {relay.n_traces}.")
-    sig_c = _sigma0(relay, st)
-    sig_first = sig_c
+    r0, q_dir = _response0(relay, st, gate)
     w = relay.grid.bin_width
-    slack = st.z_slack if st.z_slack is not None else (1.5 if st.solver == "lm" else 3.0) * w
+    slack = st.z_slack if st.z_slack is not None else 1.5 * max(w, r0.sigma)
+    sig_b = (r0.sigma / 5.0, 5.0 * r0.sigma)
+    tail_b = (0.02 * r0.sigma, min([40.0 * r0.sigma] + [0.5 * t for t, _ in r0.slow]))
+    resp_hi = Response(r0.kind, 2.0 * r0.sigma, 2.0 * r0.tail if r0.kind == "emg" else 0.0)
+    slow_pad = 0.5 * max([t for t, _ in r0.slow], default=0.0)
     ext = _extent(init, st)
     sizes = [max(4, int(round(st.n_nodes / 2 ** (st.levels - 1 - k)))) for k in range(st.levels)]
     frame = relay.frame
+    dtype = np.float32 if st.step_precision == "float32" else np.float64
+    chunk = int(st.chunk_mb * 2 ** 20)
     levels, reasons = [], []
-    prev = None
     lam = 0.0 if st.prior in ("auto", "none") else float(st.prior)
     gain_scale = 1.0
-    rl = relay
+    state = prev = None
     for li, n in enumerate(sizes):
         grid = DepthGrid.square(frame, ext[:2], ext[2:], n)
         if prev is None:
-            z, rho = _initial(init, grid)
+            z, rho = _initial(init, grid, st)
         else:
-            z, rho = prev[0].resample(prev[1], grid), np.clip(prev[0].resample(prev[2], grid), 0, None)
-        h = math.sqrt(grid.hx * grid.hy)
-        lap = grid.laplacian()
-        R = (lap.T @ lap).toarray() / h ** 2
-        rl = _window(relay, grid, z, slack, 2 * sig_c, gate)
+            z, rho = prev.resample(state.z, grid), np.clip(prev.resample(state.rho, grid), 0, None)
+        last = li == len(sizes) - 1
+        # coarse levels only start the next one: one moment-matched sample per cell
+        sub = int(st.subsamples) if st.subsamples is not None else (int(
+            min(2, max(1, math.ceil(max(grid.hx, grid.hy) / (2.0 * r0.sigma))))) if last else 1)
+        cell = math.sqrt((grid.hx ** 2 + grid.hy ** 2) / 3.0) / sub
+        rl = _window(relay, grid, z, resp_hi, cell, 4.0 * slack, gate, slow_pad)
         y = rl.traces
         wgt, noise_src = noise_weights(y, rl.sigma, st.noise_sigma)
-        bg = float(np.median(y)) if noise_src.startswith("poisson") else 0.0
-        if li == 0:
-            model = SurfaceModel(grid, rl, z, 2 * sig_c, slack, st.chunk_pairs)
-            m1 = model.predict(z, rho, sig_c, 0.0)
+        if state is None:
+            bg = float(np.percentile(y.mean(axis=0), 10)) if noise_src.startswith("poisson") else 0.0
+            state = SurfaceState(z, rho, r0.sigma, r0.tail, tuple(b for _, b in r0.slow), bg)
+            if q_dir is not None:
+                state.bgtau = max(t for t, _ in r0.slow)
+            m1 = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub,
+                              q_dir).predict(state) - bg
             s = float(np.sum(m1 * (y - bg)) / max(np.sum(m1 * m1), 1e-300))
             if not (s > 0):
                 raise ReconstructionError("The initial surface predicts no signal where the data have "
                                           "it; check the relay geometry and the time window.")
             if st.known_gain:
-                rho = np.clip(rho * s, 0.0, 1.0)
+                state.rho = np.clip(rho * s, 0.0, 1.0)
             else:
-                gain_scale = s / max(float(rho.max()), 1e-12)
-                rho = rho / max(float(rho.max()), 1e-12)
+                gain_scale = s * max(float(rho.max()), 1e-12)
+                state.rho = rho / max(float(rho.max()), 1e-12)
+        else:
+            state = replace(state, z=z, rho=rho)
         rl.gain = rl.gain * gain_scale
-        rho_max = 1.0 if st.known_gain else 1e3
-        s_rho = max(float(np.max(rho)), 1e-3)
-        s_b = max(float(np.sqrt(np.mean(1.0 / wgt))), 1e-300)
-        info = {"nodes": n, "rows": int(y.size), "solves": []}
-        sig_lo, sig_hi = sig_first / 3.0, 2.5 * sig_first
-        last = li == len(sizes) - 1
+        model = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir)
+        bounds = Bounds(model, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+        h = math.sqrt(grid.hx * grid.hy)
+        lap = grid.laplacian()
+        R = (lap.T @ lap).toarray() / h ** 2
+        info = {"nodes": n, "rows": int(y.size), "traces": int(rl.n_traces), "subsamples": sub,
+                "solves": []}
+        t_lvl = time.perf_counter()
         for rep in range(2 if (st.prior == "auto" and last) else 1):
             if st.solver == "lm":
-                model = SurfaceModel(grid, rl, z, sig_hi, slack, st.chunk_pairs)
-                res = solve_lm(model, y, wgt, z, rho, sig_c, bg, lam, lap, h, slack, rho_max,
-                               st.fit_sigma, (sig_lo, sig_hi), st.max_iter, st.tol)
+                res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype)
             else:
-                for outer in range(st.outer):
-                    model = SurfaceModel(grid, rl, z, 2 * sig_c, slack, st.chunk_pairs)
-                    res = solve_level(model, y, wgt, z, rho, sig_c, bg, lam, lap, h, slack, rho_max,
-                                      st.fit_sigma, st.max_iter, st.tol, s_rho, s_b)
-                    moved = res["sigma"] != sig_c
-                    z, rho, bg, sig_c = res["z"], res["rho"], res["bg"], res["sigma"]
-                    if not (res["z_at_slack"] or (res["sigma_at_bound"] and moved)):
-                        break
-                model = SurfaceModel(grid, rl, res["z"], sig_hi, slack, st.chunk_pairs)
-            z, rho, bg, sig_c = res["z"], res["rho"], res["bg"], res["sigma"]
-            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f")}
-                                  | {"lam": lam, "sigma": sig_c})
-            _log.info("level %d (%dx%d) solve: %s, %d it, f=%.4g, lam=%.3g, sigma=%.4g",
-                      li, n, n, res["status"], res["iterations"], res["f"], lam, sig_c)
-            H = model.gauss_newton(z, rho, sig_c, wgt, st.fit_sigma)
-            m, e, grads = model.value_and_grad(z, rho, sig_c, bg, y=y, wgt=wgt)
-            r = m - y
-            chi2 = float(np.sum(wgt * r * r))
-            npar = H.shape[0]
-            dof = max(int(y.size) - npar, 1)
-            gvec = np.concatenate([grads[0], grads[1]] + ([np.array([grads[2]])] if st.fit_sigma else [])
-                                  + [np.array([grads[3]])])
+                res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
+            state = res["state"]
+            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound")}
+                                  | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
+                                     "betas": list(state.betas)})
+            _log.info("level %d (%dx%d) solve: %s, %d it, f=%.6g, lam=%.3g, sigma=%.4g, tail=%.4g",
+                      li, n, n, res["status"], res["iterations"], res["f"], lam, state.sigma, state.tail)
             if st.prior != "auto" or not last:
                 break
-            new_lam, curve = _choose_lambda(H, gvec, chi2, dof, R, slice(0, grid.n), lam)
+            lin = model.linearise(state, y, wgt, dtype=np.float64)
+            dof = max(int(y.size) - model.npar, 1)
+            new_lam, curve = _choose_lambda(lin["H"], lin["g"], lin["chi2"], dof, R, grid.n, lam)
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
             if rep == 0 and (new_lam > 3 * lam or new_lam < lam / 3) and not (new_lam == 0 and lam == 0):
                 lam = new_lam
                 continue
             break
-        info.update({"lam": lam, "chi2_dof": chi2 / dof, "status": res["status"], "success": res["success"]})
+        info.update({"lam": lam, "status": res["status"], "success": res["success"],
+                     "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
         if not res["success"]:
-            reasons.append(f"level {li} ({n}x{n}): IPOPT status {res['status']}")
-        prev = (grid, z, rho)
-    # ---- Fisher covariance at the finest level
+            reasons.append(f"level {li} ({n}x{n}): solver status {res['status']}")
+        if res["at_bound"]:
+            reasons.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "
+                           f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "
+                           f"[{tail_b[0]:.3g}, {tail_b[1]:.3g}] m)")
+        prev = grid
+    return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
+                   relay.n_traces, t_start)
+
+
+def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
+            t_start) -> SurfaceResult:
+    """Fisher covariance, std maps, mask and the result (see the module docstring, step 5)."""
+    grid = model.grid
+    lin = model.linearise(state, y, wgt, dtype=np.float64)
+    H, chi2 = lin["H"], lin["chi2"]
     N = grid.n
-    Rf = np.zeros_like(H)
-    Rf[:N, :N] = R
-    A = H + lam * Rf
-    A += (1e-12 * float(np.trace(A)) / A.shape[0]) * np.eye(A.shape[0])
+    npar = H.shape[0]
+    dof = max(int(y.size) - npar, 1)
+    levels[-1]["chi2_dof"] = chi2 / dof
+    A = H.copy()
+    A[:N, :N] += lam * R
+    A += (1e-12 * float(np.trace(A)) / npar) * np.eye(npar)
     C = np.linalg.inv(A)
     infl = max(1.0, chi2 / dof)
     Cz = C[:N, :N] * infl
     z_std = np.sqrt(np.maximum(np.diag(Cz), 0))
     rho_std = np.sqrt(np.maximum(np.diag(C[N:2 * N, N:2 * N]) * infl, 0))
-    sig_std = math.sqrt(max(C[2 * N, 2 * N] * infl, 0)) if st.fit_sigma else None
+    gstd = {k: math.sqrt(max(C[2 * N + i, 2 * N + i] * infl, 0)) for i, k in enumerate(model.glob)}
+    z, rho = state.z, state.rho
     X, nrm, _ = grid.geometry(z)
     Gx, Gy = grid.gradient_ops()
     gx, gy = Gx @ z, Gy @ z
     GxC, GyC = np.asarray(Gx @ Cz), np.asarray(Gy @ Cz)
-    vxx = np.sum(GxC * Gx.toarray(), axis=1)
-    vyy = np.sum(GyC * Gy.toarray(), axis=1)
-    vxy = np.sum(GxC * Gy.toarray(), axis=1)
+    vxx = np.asarray((Gx.multiply(GxC)).sum(axis=1)).ravel()
+    vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
+    vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
     n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
     mask = (rho > st.mask_z * rho_std) & (rho > 0.1 * max(float(rho.max()), 1e-300))
     shape = grid.shape
-    success = not reasons
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
                        "residual; std inflated by sqrt(chi2/dof))")
+    resp = model.response(state)
+    r = lin["m"] - y
     return SurfaceResult(
         grid=grid, depth=z.reshape(shape), albedo=rho.reshape(shape), normals=nrm.reshape(shape + (3,)),
         depth_std=z_std.reshape(shape), albedo_std=rho_std.reshape(shape),
-        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), sigma_irf=float(sig_c),
-        sigma_irf_std=sig_std, background=float(bg), gain=float(gain_scale), prior_weight=float(lam),
+        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), sigma_irf=float(state.sigma),
+        sigma_irf_std=gstd.get("sigma"), background=float(state.bg), gain=float(gain_scale),
+        prior_weight=float(lam),
         prior_method={"auto": "discrepancy principle", "none": "none"}.get(st.prior, "fixed")
         if isinstance(st.prior, str) else "fixed",
         chi2_dof=float(chi2 / dof), dof=int(dof), albedo_relative=not st.known_gain,
-        success=success, levels=levels, wall_time_s=time.perf_counter() - t_start, reasons=reasons,
-        extras={"noise": noise_src, "window": [rl.grid.start, rl.grid.end], "n_traces": relay.n_traces,
+        success=not reasons, levels=levels, wall_time_s=time.perf_counter() - t_start, reasons=reasons,
+        response=resp.kind, tail=float(state.tail) if resp.kind == "emg" else None,
+        tail_std=gstd.get("tail"), brdf=st.brdf, fwhm_irf=resp.fwhm(),
+        extras={"noise": noise_src, "window": [rl.grid.start, rl.grid.end], "n_traces": n_traces,
+                "response": resp.describe(), "background_std": gstd.get("bg"),
+                "slow_tails": [[t, b] for t, b in resp.slow],
+                "background_decay": None if model.direct is None else
+                {"amplitude": state.bg1, "length_m": state.bgtau},
                 "residual_chi2_per_trace": (np.sum(wgt * r * r, axis=1)).tolist()
-                if relay.n_traces <= 4096 else None})
+                if rl.n_traces <= 4096 else None})
 
 
 def _normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:

@@ -2,12 +2,15 @@
 
 Node (iy, ix) sits at X = c + x[ix] u + y[iy] v + z w (frame (c, u, v, w), w pointing from the
 relay into the hidden scene), carries depth z and albedo rho. With the depth gradients
-(gx, gy) = (dz/dx, dz/dy) (central differences, one-sided at the border) the element's normal,
+(gx, gy) = (dz/dx, dz/dy) (central differences, second-order one-sided at the border) the element's normal,
 facing the relay, and area are
 
     n = -(w - gx u - gy v) / sqrt(1 + gx^2 + gy^2),     a = hx hy sqrt(1 + gx^2 + gy^2).
 
-The discrete Laplacian (5-point, Neumann border) is the smoothness prior's operator.
+Inside its cell the surface is the node's second-order patch
+z(dx, dy) = z + gx dx + gy dy + (zxx dx^2 + zyy dy^2) / 2 + zxy dx dy, with the curvatures from
+second differences (``curvature_ops``): cells are not flat, so a curved object is not a set of
+facets. The discrete Laplacian (5-point, Neumann border) is the smoothness prior's operator.
 """
 from __future__ import annotations
 
@@ -20,16 +23,30 @@ __all__ = ["DepthGrid"]
 
 
 def _diff_1d(n: int, h: float) -> sp.csr_matrix:
+    """First differences / h: central inside, second-order one-sided at the border (exact for
+    a parabola, like the central ones: the border cells of a curved surface are not tilted)."""
     if n == 1:
         return sp.csr_matrix((1, 1))
     D = sp.lil_matrix((n, n))
+    if n == 2:
+        D[0, 0], D[0, 1] = -1.0 / h, 1.0 / h
+        D[1, 0], D[1, 1] = -1.0 / h, 1.0 / h
+        return D.tocsr()
+    for i in range(1, n - 1):
+        D[i, i - 1], D[i, i + 1] = -0.5 / h, 0.5 / h
+    D[0, 0], D[0, 1], D[0, 2] = -1.5 / h, 2.0 / h, -0.5 / h
+    D[n - 1, n - 1], D[n - 1, n - 2], D[n - 1, n - 3] = 1.5 / h, -2.0 / h, 0.5 / h
+    return D.tocsr()
+
+
+def _second_1d(n: int, h: float) -> sp.csr_matrix:
+    """Second differences / h^2; a border node takes its inner neighbour's stencil."""
+    if n < 3:
+        return sp.csr_matrix((n, n))
+    D = sp.lil_matrix((n, n))
     for i in range(n):
-        if i == 0:
-            D[i, 0], D[i, 1] = -1.0 / h, 1.0 / h
-        elif i == n - 1:
-            D[i, n - 2], D[i, n - 1] = -1.0 / h, 1.0 / h
-        else:
-            D[i, i - 1], D[i, i + 1] = -0.5 / h, 0.5 / h
+        c = min(max(i, 1), n - 2)
+        D[i, c - 1], D[i, c], D[i, c + 1] = 1.0 / h ** 2, -2.0 / h ** 2, 1.0 / h ** 2
     return D.tocsr()
 
 
@@ -77,6 +94,15 @@ class DepthGrid:
         Gx = sp.kron(sp.eye(ny), _diff_1d(nx, self.hx)).tocsr()
         Gy = sp.kron(_diff_1d(ny, self.hy), sp.eye(nx)).tocsr()
         return Gx, Gy
+
+    def curvature_ops(self) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
+        """Sparse (n, n) operators giving zxx, zyy, zxy (second differences; a border node takes
+        its inner neighbour's stencil): the curvature of the surface inside each node's cell."""
+        ny, nx = self.shape
+        Dxx = sp.kron(sp.eye(ny), _second_1d(nx, self.hx)).tocsr()
+        Dyy = sp.kron(_second_1d(ny, self.hy), sp.eye(nx)).tocsr()
+        Gx, Gy = self.gradient_ops()
+        return Dxx, Dyy, (Gy @ Gx).tocsr()
 
     def laplacian(self) -> sp.csr_matrix:
         """5-point Laplacian (unit spacing, Neumann border): second differences of depth."""

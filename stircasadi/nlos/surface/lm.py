@@ -1,80 +1,124 @@
 """Bounded Levenberg-Marquardt on a level's surface NLP (the default solver of ``fit_surface``).
 
-Same NLP as ``solve.py`` (whitened least squares + smoothness prior; 0 <= rho <= rho_max and
-sigma within [sigma_lo, sigma_hi] as hard bounds), solved with the exact Gauss-Newton matrix
-H = J^T W J built from the CasADi pair Jacobians: each iteration solves
-(H + lam R + mu diag(H)) d = -g, limits the depth step to ``slack``, projects onto the bounds,
-re-centres the deposit windows, and accepts the step when the objective decreases (mu / 3) or
-retries with mu x 4. It needs 5-20 iterations where IPOPT's limited-memory Hessian needed
-hundreds on the same problems (the GN matrix is dense: every node couples with every other, so
-IPOPT cannot take it as its exact Hessian at useful sizes).
+The NLP (``SurfaceModel`` unknowns theta = (z, rho, sigma[, tail], b)):
+
+    min  F(theta) = 1/2 sum_pk wgt_pk (m_pk(theta) - y_pk)^2 + 1/2 lam || Lap z / h ||^2
+    s.t. 0 <= rho <= rho_max,  sigma and tail within their bounds.
+
+Each iteration builds the exact Gauss-Newton matrix H = J^T W J and gradient g
+(``SurfaceModel.linearise``), freezes the bounded unknowns whose gradient pushes them outward
+(projected Newton; the depth of a node whose albedo and whose neighbours' albedos are near zero
+is held: the data do not see it), solves (H + lam R + mu diag(H)) d = -g by Cholesky, limits the depth step
+to ``slack``, projects onto the bounds and accepts the step when F decreases (mu / 3), else
+retries with mu x 4. It needs 5-20 iterations where IPOPT's limited-memory Hessian needs
+hundreds on the same problems (the GN matrix is dense: nodes couple through every trace that
+sees them at similar delays).
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg as sla
 
-__all__ = ["solve_lm"]
+from .model import SurfaceModel, SurfaceState
+
+__all__ = ["solve_lm", "Bounds"]
 
 
-def solve_lm(model, y, wgt, z, rho, sigma, bg, lam, lap, h, slack, rho_max, fit_sigma,
-             sigma_bounds, max_iter=30, tol=1e-6):
-    """Returns dict(z, rho, sigma, bg, status, iterations, success, f, H, g)."""
+class Bounds:
+    """Lower / upper bounds of ``SurfaceModel.pack``'s vector (depths free)."""
+
+    def __init__(self, model: SurfaceModel, rho_max: float, sigma: tuple, tail: tuple,
+                 beta: tuple = (0.0, 0.95), bgtau: tuple = (0.01, 5.0)):
+        N = model.N
+        lo = np.full(model.npar, -np.inf)
+        hi = np.full(model.npar, np.inf)
+        lo[N:2 * N], hi[N:2 * N] = 0.0, rho_max
+        for i, name in enumerate(model.glob):
+            if name == "sigma":
+                lo[2 * N + i], hi[2 * N + i] = sigma
+            elif name == "tail":
+                lo[2 * N + i], hi[2 * N + i] = tail
+            elif name.startswith("beta"):
+                lo[2 * N + i], hi[2 * N + i] = beta
+            elif name == "bgtau":
+                lo[2 * N + i], hi[2 * N + i] = bgtau
+        self.lo, self.hi = lo, hi
+        self.beta_idx = np.array([2 * N + i for i, k in enumerate(model.glob) if k.startswith("beta")], int)
+
+    def project(self, th):
+        out = np.clip(th, self.lo, self.hi)
+        b = self.beta_idx
+        if len(b) and out[b].sum() > 0.97:          # the slow tails' weights sum below 1
+            out[b] *= 0.97 / out[b].sum()
+        return out
+
+    def at_bound(self, th):
+        """Names of the globals at a bound (a fitted value the data push past its range)."""
+        return np.isclose(th, self.lo, rtol=1e-6, atol=0) | np.isclose(th, self.hi, rtol=1e-6, atol=0)
+
+
+def _solve(A, b):
+    try:
+        return -sla.cho_solve(sla.cho_factor(A, check_finite=False), b, check_finite=False)
+    except (np.linalg.LinAlgError, ValueError):
+        return -np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def _damping(h, N):
+    """Marquardt's diag(H), floored per block (depths, albedos, globals) at 1e-4 of the block's
+    median so that unknowns the data hardly see (depths under a zero albedo) stay damped."""
+    d = np.array(h, float)
+    for sl in (slice(0, N), slice(N, 2 * N)):
+        blk = d[sl]
+        if blk.size:
+            d[sl] = np.maximum(blk, 1e-4 * max(float(np.median(blk)), 1e-300))
+    return np.maximum(d, 1e-12 * max(float(np.max(d)), 1e-300))
+
+
+def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
+             slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32) -> dict:
+    """Run LM from ``st``. Returns dict(state, status, iterations, success, f, chi2)."""
     N = model.N
-    Rz = (lap.T @ lap).toarray() / h ** 2
+    prior = lam > 0
 
-    def objective(z, rho, sigma, bg):
-        m = model.predict(z, rho, sigma, bg)
-        r = m - y
-        f = 0.5 * float(np.sum(wgt * r * r))
-        if lam > 0:
-            q = lap @ z / h
-            f += 0.5 * lam * float(q @ q)
-        return f
+    def pen(z):
+        return 0.5 * lam * float(z @ (Rz @ z)) if prior else 0.0
 
-    def pack_grad(z, rho, sigma, bg):
-        m, e, (gz, grho, gsig, gbg) = model.value_and_grad(z, rho, sigma, bg, y=y, wgt=wgt)
-        if lam > 0:
-            gz = gz + lam * (Rz @ z)
-        g = np.concatenate([gz, grho] + ([np.array([gsig])] if fit_sigma else []) + [np.array([gbg])])
-        return g
-
-    model.recentre(z)
-    f = objective(z, rho, sigma, bg)
+    th = bounds.project(model.pack(st))
+    st = model.unpack(th, st)
     mu = 1e-3
-    status, it = "Maximum_Iterations_Exceeded", 0
-    H = g = None
+    status, it, f = "Maximum_Iterations_Exceeded", 0, None
     for it in range(1, max_iter + 1):
-        H = model.gauss_newton(z, rho, sigma, wgt, fit_sigma)
-        g = pack_grad(z, rho, sigma, bg)
-        Hp = H.copy()
-        if lam > 0:
-            Hp[:N, :N] += lam * Rz
-        dH = np.maximum(np.diag(Hp), 1e-12 * max(float(np.max(np.diag(Hp))), 1e-300))
+        lin = model.linearise(st, y, wgt, dtype=dtype)
+        f = 0.5 * lin["chi2"] + pen(st.z)
+        H, g = lin["H"], lin["g"].copy()
+        if prior:
+            H[:N, :N] += lam * Rz
+            g[:N] += lam * (Rz @ st.z)
+        dH = _damping(np.diag(H), N)
+        # projected Newton: unknowns at a bound whose gradient pushes outward stay there
+        free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
+        # the depth of a node the data do not see (albedo below 2 % of the largest, and its four
+        # neighbours' too: their normals depend on it) is not moved
+        free[:N] &= model.seen(st.rho)
+        fi = np.flatnonzero(free)
+        Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]
         accepted = False
-        for _ in range(12):
-            A = Hp + mu * np.diag(dH)
-            try:
-                d = -np.linalg.solve(A, g)
-            except np.linalg.LinAlgError:
-                mu *= 10
-                continue
-            dz = d[:N]
-            big = float(np.max(np.abs(dz))) if N else 0.0
-            if big > slack:
-                d = d * (slack / big)
-            zn = z + d[:N]
-            rn = np.clip(rho + d[N:2 * N], 0.0, rho_max)
-            sn = float(np.clip(sigma + d[2 * N], *sigma_bounds)) if fit_sigma else sigma
-            bn = bg + d[-1]
-            model.recentre(zn)
-            fn = objective(zn, rn, sn, bn)
-            if fn < f:
+        for _ in range(14):
+            d = np.zeros_like(th)
+            d[fi] = _solve(Hf + mu * np.diag(dHf), gf)
+            big = float(np.max(np.abs(d[:N]))) if N else 0.0
+            d[:N] = np.clip(d[:N], -slack, slack)     # nodes the data hardly see may not jump
+            tn = bounds.project(th + d)
+            sn = model.unpack(tn, st)
+            chi2n, _ = model.objective(sn, y, wgt)
+            fn = 0.5 * chi2n + pen(sn.z)
+            if np.isfinite(fn) and fn < f:
                 accepted = True
                 rel = (f - fn) / max(abs(f), 1e-300)
-                z, rho, sigma, bg, f = zn, rn, sn, bn, fn
+                th, st, f = tn, sn, fn
                 mu = max(mu / 3.0, 1e-9)
                 break
-            model.recentre(z)
             mu *= 4.0
         if not accepted:
             status = "Converged (no decrease possible)"
@@ -82,6 +126,6 @@ def solve_lm(model, y, wgt, z, rho, sigma, bg, lam, lap, h, slack, rho_max, fit_
         if rel < tol:
             status = "Converged"
             break
-    model.recentre(z)
-    return {"z": z, "rho": rho, "sigma": float(sigma), "bg": float(bg), "status": status,
-            "iterations": it, "success": status.startswith("Converged"), "f": f}
+    return {"state": st, "status": status, "iterations": it, "success": status.startswith("Converged"),
+            "f": float(f), "at_bound": [n for i, n in enumerate(model.glob)
+                                        if bounds.at_bound(th)[2 * N + i]]}

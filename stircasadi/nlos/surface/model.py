@@ -1,185 +1,424 @@
 """The differentiable forward model of a depth-map surface seen through a relay.
 
-When to use: built by ``fit.fit_surface`` for one grid level; describes, never solves.
+When to use: built by ``fit.fit_surface`` for one grid level; describes, never solves. The
+solvers read ``predict`` (the model), ``linearise`` (the Gauss-Newton matrix and gradient of
+the whitened least squares) and the parameter packing; nothing else.
 
 Model of trace p, bin k (left edge t_k, width w):
 
-    m_pk = b + sum_n A(L_p, D_p, X_n, n_n, a_n, rho_n) B(t_k - tau_pn; sigma)
+    m_pk = b_pk + Phi[ sum_n rho_n A_pn B(t_k - tau_pn; s_pn) ]_k,   s_pn^2 = sigma^2 + c_pn^2,
 
-with A, tau, B from ``physics.py`` and (X_n, n_n, a_n) from the depth map (``grid.py``). Each
-(trace, node) pair deposits into a window of ``n_win`` bins starting at ``k0[p, n]`` (fixed
-for the level, centred on the pair's delay at the level's start; the solver keeps depths and
-sigma within bounds that keep the deposit inside it). One CasADi SX Function of a single
-pair, with its exact Jacobian with respect to (z, gx, gy, rho, sigma), is mapped over all
-pairs; the chain rule through the gradient operators gives derivatives per node.
+with the amplitude A (at unit albedo), delay tau and cell variance c^2 from ``physics.py`` at the
+node's position and normal (``grid.py``: each node's cell is the second-order patch of its
+depth, gradients gx = Gx z, gy = Gy z and curvatures zxx, zyy, zxy from second differences), B the bin integral of the response's core and Phi its slow tails applied along each
+trace (``response.py``; the core's width and tail and the slow tails' weights are global
+unknowns). The background is b_pk = b0 + b1 q_p exp(-(t_k - t_0) / tau_b): a level plus, when
+the relay's own (direct) return q_p is given, that return's slow decay (b1 and tau_b fitted).
 
-Memory is bounded by working through ``chunk`` traces at a time.
+Structure used for speed (the brief of issue 13: "profile first"). Every (trace, node) pair
+needs only three geometric numbers (A, tau, c^2) and their derivatives with respect to the
+node's patch (z, gx, gy, zxx, zyy, zxy): one small CasADi SX function, mapped over the pairs
+(and cell sub-samples) of a chunk of traces.
+The response then fills a window of bins per pair in NumPy (its value and derivatives come from
+F, f and f' at the window's bin edges), and the chunk's Jacobian rows are assembled densely
+over (z, rho, globals) with the chain rule through the sparse difference operators. The
+Gauss-Newton matrix is a sum of per-chunk products J^T W J (BLAS; float32 for the solver's
+steps, float64 for the Fisher covariance); without slow tails, rows that no pair reaches only
+carry the background; with them, Phi is applied to the chunk's columns along time.
+Memory is bounded by ``chunk_bytes`` whatever the number of traces.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
 
-from ...timegrid import TimeGrid
+from ...errors import ReconstructionError
 from ..relay import Relay
 from .grid import DepthGrid
-from .physics import cell_spread, deposit_window, relay_amplitude, relay_delay
+from .physics import BRDFS, cell_variance, relay_amplitude, relay_delay
+from .response import Response
 
-__all__ = ["SurfaceModel"]
+__all__ = ["SurfaceModel", "SurfaceState"]
+
+
+def _gram_upper(J: np.ndarray) -> np.ndarray:
+    """The upper triangle of J^T J (float64) by the symmetric rank-k update (BLAS syrk: half
+    the products of a general matrix product), computed in J's precision; the lower triangle
+    holds no meaning (``_symmetrise`` once the chunks are summed)."""
+    from scipy.linalg import blas
+    f = blas.ssyrk if J.dtype == np.float32 else blas.dsyrk
+    return np.asarray(f(1.0, J.T, trans=0, lower=0), dtype=np.float64)   # J.T is Fortran-ordered
+
+
+def _symmetrise(U: np.ndarray) -> np.ndarray:
+    return np.triu(U) + np.triu(U, 1).T
+
+
+@dataclass
+class SurfaceState:
+    """The unknowns of one level: depths and albedos per node, the response's core width and
+    tail and its slow tails' weights, the background level b0 and the direct return's decay
+    (amplitude b1, length tau_b; metres of path)."""
+
+    z: np.ndarray
+    rho: np.ndarray
+    sigma: float
+    tail: float
+    betas: tuple
+    bg: float
+    bg1: float = 0.0
+    bgtau: float = 0.1
+
+    def copy(self) -> "SurfaceState":
+        return replace(self, z=np.array(self.z, float), rho=np.array(self.rho, float))
 
 
 class SurfaceModel:
-    """Forward model and derivatives of one level (grid, relay window, deposit windows)."""
+    """Forward model and Gauss-Newton pieces of one level (grid, relay window, response).
 
-    def __init__(self, grid: DepthGrid, relay: Relay, z_ref: np.ndarray, sigma_max: float,
-                 z_slack: float, chunk_pairs: int = 200_000):
-        self.grid = grid
-        self.relay = relay
-        g: TimeGrid = relay.grid
-        self.w = g.bin_width
-        self.T = g.n_bins
-        self.P = relay.n_traces
-        self.N = grid.n
+    Parameters
+    ----------
+    grid : the level's depth grid.
+    relay : the traces (already cut to the level's time window).
+    response : the response's kind and slow-tail lengths (its numbers are the state's).
+    brdf : "lambertian" or "retroreflective" (confocal relays only).
+    fit_shape : the response's width, tail and slow-tail weights are unknowns; else only the
+        background is.
+    chunk_bytes : memory of one chunk's dense Jacobian rows.
+    subsamples : q: each node's cell is integrated by q x q sub-samples on the node's tangent
+        plane (each with its own delay, amplitude and sub-cell spread), so cells wider than the
+        response's width are not reduced to one moment-matched Gaussian.
+    direct : per-trace amplitude q_p of the relay's own return (its slow decay enters the
+        background), or None.
+    """
+
+    def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
+                 fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
+                 direct: np.ndarray | None = None):
+        if brdf not in BRDFS:
+            raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
+        if brdf == "retroreflective" and not relay.confocal:
+            raise ReconstructionError("A retroreflective surface returns light only to the laser's own "
+                                      "spot: brdf='retroreflective' needs a confocal relay. Use "
+                                      "brdf='lambertian' for paired or full-STIR relays.")
+        self.grid, self.relay, self.brdf = grid, relay, brdf
+        self.kind, self.taus = response.kind, tuple(t for t, _ in response.slow)
+        g = relay.grid
+        self.w, self.T, self.t_start = g.bin_width, g.n_bins, g.start
+        self.P, self.N = relay.n_traces, grid.n
         self.Gx, self.Gy = grid.gradient_ops()
-        # window: the IRF, the cell's own delay spread (at most 2 sides x 2 / sqrt(12)), slack
-        cell = 2.0 * max(grid.hx, grid.hy) / math.sqrt(3.0)
-        self.half = 4.5 * math.sqrt(sigma_max ** 2 + cell ** 2) + (2.0 * z_slack + self.w)
-        self.n_win = int(math.ceil(2 * self.half / self.w)) + 1
+        Dxx, Dyy, Dxy = grid.curvature_ops()
+        # the six local unknowns of a node's patch (z, gx, gy, zxx, zyy, zxy) from the depths
+        self.ops = [None, self.Gx, self.Gy, Dxx, Dyy, Dxy]
+        self.opsT = [None] + [o.T.tocsr() for o in self.ops[1:]]
         self.base = grid.base_points()
-        self.chunk = max(1, int(chunk_pairs // max(self.N, 1)))
-        self.recentre(z_ref)
+        self.t_left = g.start + np.arange(self.T) * self.w
+        self.direct = None if direct is None else np.asarray(direct, float)
+        shape = []
+        if fit_shape:
+            shape = ["sigma"] + (["tail"] if self.kind == "emg" else []) + [f"beta{i}" for i in range(len(self.taus))]
+        self.glob = shape + ["bg"] + (["bg1", "bgtau"] if self.direct is not None else [])
+        self.chunk_bytes = int(chunk_bytes)
+        self.sub = max(1, int(subsamples))
         self._build()
+        self._maps: dict = {}
 
-    def recentre(self, z_ref) -> None:
-        """Place every pair's deposit window around its delay for depths ``z_ref``."""
-        r, g = self.relay, self.relay.grid
-        X, _, _ = self.grid.geometry(np.asarray(z_ref, float))
-        tau = relay_delay(r.L[:, None, :], r.D[:, None, :], X[None, :, :], r.leg[:, None])
-        self.k0 = np.floor((tau - self.half - g.start) / self.w).astype(np.int64)   # (P, N)
+    # ------------------------------------------------------------------ parameters
+    @property
+    def npar(self) -> int:
+        return 2 * self.N + len(self.glob)
 
-    # ------------------------------------------------------------------ CasADi pair function
+    @staticmethod
+    def _get(st: SurfaceState, name: str) -> float:
+        return float(st.betas[int(name[4:])]) if name.startswith("beta") else float(getattr(st, name))
+
+    def pack(self, st: SurfaceState) -> np.ndarray:
+        return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob]])
+
+    def unpack(self, theta: np.ndarray, like: SurfaceState) -> SurfaceState:
+        N = self.N
+        kw, betas = {}, list(like.betas)
+        for i, k in enumerate(self.glob):
+            if k.startswith("beta"):
+                betas[int(k[4:])] = float(theta[2 * N + i])
+            else:
+                kw[k] = float(theta[2 * N + i])
+        return replace(like, z=np.array(theta[:N], float), rho=np.array(theta[N:2 * N], float),
+                       betas=tuple(betas), **kw)
+
+    def seen(self, rho: np.ndarray, frac: float = 0.02) -> np.ndarray:
+        """Nodes whose depth the data constrain: their albedo or a 4-neighbour's (through the
+        normal) is at least ``frac`` of the largest."""
+        on = (np.asarray(rho) > frac * max(float(np.max(rho)), 1e-300)).reshape(self.grid.shape)
+        near = on.copy()
+        near[1:] |= on[:-1]
+        near[:-1] |= on[1:]
+        near[:, 1:] |= on[:, :-1]
+        near[:, :-1] |= on[:, 1:]
+        return near.ravel()
+
+    def response(self, st: SurfaceState) -> Response:
+        return Response(self.kind, st.sigma, st.tail if self.kind == "emg" else 0.0,
+                        tuple(zip(self.taus, st.betas)))
+
+    def background(self, st: SurfaceState, t0: int = 0, t1: int | None = None):
+        """b_pk of traces t0..t1 (see the module equation) and, with a direct return, its
+        derivatives with respect to b1 and tau_b."""
+        t1 = self.P if t1 is None else t1
+        b = np.full((t1 - t0, self.T), float(st.bg))
+        if self.direct is None:
+            return b, None, None
+        dt = self.t_left - self.t_start
+        e = np.exp(-dt / st.bgtau)
+        d1 = self.direct[t0:t1, None] * e[None, :]
+        return b + st.bg1 * d1, d1, st.bg1 * d1 * (dt / st.bgtau ** 2)[None, :]
+
+    # ------------------------------------------------------------------ CasADi pair geometry
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
-        p = ca.SX.sym("p", 5)          # z, gx, gy, rho, sigma
-        q = ca.SX.sym("q", 18)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain t_left
-        z, gx, gy, rho, sig = (p[i] for i in range(5))
+        p = ca.SX.sym("p", 6)          # z, gx, gy, zxx, zyy, zxy of the node
+        q = ca.SX.sym("q", 19)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain dx dy
+        z, gx0, gy0, zxx, zyy, zxy = (p[i] for i in range(6))
+        dx, dy = q[17], q[18]
+        # the sub-sample at in-plane offset (dx, dy) lies on the node's second-order patch
+        gx = gx0 + zxx * dx + zxy * dy
+        gy = gy0 + zxy * dx + zyy * dy
         s = ca.sqrt(1 + gx ** 2 + gy ** 2)
-        X = q[0:3] + z * wv
+        X = q[0:3] + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv
         nX = -(wv - gx * u - gy * v) / s
-        area = self.grid.hx * self.grid.hy * s
-        amp = relay_amplitude(q[3:6], q[6:9], q[9:12], q[12:15], X, nX, area, rho, q[16])
-        tau = relay_delay(q[3:6], q[6:9], X, q[15])
-        left = q[17] + ca.DM(np.arange(self.n_win) * self.w)
-        spread = cell_spread(q[3:6], q[6:9], X, u + gx * wv, v + gy * wv, self.grid.hx, self.grid.hy)
-        y = deposit_window(amp, tau, left, self.w, ca.sqrt(sig ** 2 + spread ** 2))
-        self.f_val = ca.Function("pair", [p, q], [y])
-        self.f_jac = ca.Function("pair_jac", [p, q], [y, ca.jacobian(y, p)])
+        hx, hy = self.grid.hx / self.sub, self.grid.hy / self.sub
+        area = hx * hy * s
+        L, D = q[3:6], q[6:9]
+        amp = relay_amplitude(L, D, q[9:12], q[12:15], X, nX, area, 1.0, q[16], brdf=self.brdf)
+        tau = relay_delay(L, D, X, q[15])
+        c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx, hy)
+        out = ca.vertcat(amp, tau, c2)
+        self.f_geo = ca.Function("pair_geometry", [p, q], [out])
+        self.f_geo_jac = ca.Function("pair_geometry_jac", [p, q], [ca.vertcat(out, ca.vec(ca.jacobian(out, p)))])
+        k = (np.arange(self.sub) + 0.5) / self.sub - 0.5
+        dy, dx = np.meshgrid(k * self.grid.hy, k * self.grid.hx, indexing="ij")
+        self.offsets = np.stack([dx.ravel(), dy.ravel()], axis=1)          # (S, 2)
 
-    # ------------------------------------------------------------------ numeric evaluation
-    def _pairs(self, t0: int, t1: int, z, gx, gy, rho, sigma):
-        """Parameter (5, K) and constant (18, K) columns of the pairs of traces t0..t1."""
-        r = self.relay
+    def _mapped(self, K: int, jac: bool):
+        key = (K, jac)
+        if key not in self._maps:
+            if len(self._maps) > 8:
+                self._maps.clear()
+            self._maps[key] = (self.f_geo_jac if jac else self.f_geo).map(K)
+        return self._maps[key]
+
+    def _geometry(self, t0: int, t1: int, loc, jac: bool):
+        """(K, S, 3) values (A, tau, c^2) of the K = traces x nodes pairs' S sub-samples and,
+        with ``jac``, (K, S, 3, 6) d(A, tau, c^2) / d(z, gx, gy, zxx, zyy, zxy) (``loc``: those
+        six per node)."""
+        r, N = self.relay, self.N
+        S = len(self.offsets)
         nt = t1 - t0
-        K = nt * self.N
-        P = np.empty((5, K))
-        P[0] = np.tile(z, nt)
-        P[1] = np.tile(gx, nt)
-        P[2] = np.tile(gy, nt)
-        P[3] = np.tile(rho, nt)
-        P[4] = sigma
-        Q = np.empty((18, K))
-        Q[0:3] = np.tile(self.base.T, nt)
+        K = nt * N * S
+        _, u, v, _ = self.grid.frame
+        Pm = np.empty((6, K))
+        for i, a in enumerate(loc):
+            Pm[i] = np.tile(np.repeat(a, S), nt)
+        Q = np.empty((19, K))
+        off = np.tile(self.offsets.T, (1, N))                                # (2, N S)
+        Xb = np.repeat(self.base.T, S, axis=1) + off[0] * u[:, None] + off[1] * v[:, None]
+        Q[0:3] = np.tile(Xb, nt)
         for a, arr in ((3, r.L), (6, r.D), (9, r.nL), (12, r.nD)):
-            Q[a:a + 3] = np.repeat(arr[t0:t1].T, self.N, axis=1)
-        Q[15] = np.repeat(r.leg[t0:t1], self.N)
-        Q[16] = np.repeat(r.gain[t0:t1], self.N)
-        k0 = self.k0[t0:t1].ravel()
-        Q[17] = r.grid.start + k0 * self.w
-        return P, Q, k0
+            Q[a:a + 3] = np.repeat(arr[t0:t1].T, N * S, axis=1)
+        Q[15] = np.repeat(r.leg[t0:t1], N * S)
+        Q[16] = np.repeat(r.gain[t0:t1], N * S)
+        Q[17:19] = np.tile(off, nt)
+        out = self._mapped(K, jac)(ca.DM(Pm), ca.DM(Q)).full()   # DM in: the fast conversion
+        vals = out[:3].T.reshape(nt * N, S, 3)
+        if not jac:
+            return vals, None
+        return vals, out[3:].T.reshape(nt * N, S, 6, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
-    def _index(self, t0, t1, k0):
-        """Flat (trace, bin) index of every window bin (K, n_win) and its validity."""
-        kk = k0[:, None] + np.arange(self.n_win)[None, :]
+    # ------------------------------------------------------------------ response windows
+    def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
+        """One window of bins per pair (shared by its sub-samples) and the response on it:
+        k0 (K,), n_win, s (K, S), bin integrals B (K, S, n_win) and, with ``need_parts``,
+        (F, f, f'[, dF/dtail]) at the window's edges (K, S, n_win + 1)."""
+        s = np.sqrt(st.sigma ** 2 + c2)
+        lo, hi = resp.support(float(s.max()) if s.size else st.sigma)
+        w = self.w
+        tmin, tmax = tau.min(axis=1), tau.max(axis=1)
+        k0 = np.floor((tmin + lo - self.t_start) / w).astype(np.int64)
+        n_win = int(math.ceil((float(np.max(tmax - tmin, initial=0.0)) + hi - lo) / w)) + 2
+        j = np.arange(n_win + 1)
+        x = (self.t_start + (k0[:, None, None] + j[None, None, :]) * w - tau[:, :, None]
+             + resp.mode_offset())
+        if not need_parts:
+            F = resp.parts(x, s[:, :, None])[0]
+            return k0, n_win, s, np.diff(F, axis=2), None
+        parts = resp.parts(x, s[:, :, None], need_tail=need_tail)
+        return k0, n_win, s, np.diff(parts[0], axis=2), parts
+
+    def _chunks(self, per_trace_bytes: int):
+        nt = max(1, int(self.chunk_bytes // max(per_trace_bytes, 1)))
+        for t0 in range(0, self.P, nt):
+            yield t0, min(t0 + nt, self.P)
+
+    # ------------------------------------------------------------------ evaluation
+    def _local(self, z):
+        """The six local unknowns of every node's patch (``ops`` applied to the depths)."""
+        return [z] + [o @ z for o in self.ops[1:]]
+
+    def _core(self, st, resp, t0, t1, loc):
+        """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
+        G, _ = self._geometry(t0, t1, loc, False)
+        k0, n_win, _, Bw, _ = self._windows(st, resp, G[..., 1], G[..., 2], False, False)
+        val = np.einsum("ks,ksw->kw", G[..., 0], Bw) * np.tile(st.rho, t1 - t0)[:, None]
+        idx, ok = self._index(t0, t1, k0, n_win)
+        nt = t1 - t0
+        return np.bincount(idx[ok] - t0 * self.T, val[ok], minlength=nt * self.T).reshape(nt, self.T)
+
+    def predict(self, st: SurfaceState) -> np.ndarray:
+        """Model traces (P, T)."""
+        resp = self.response(st)
+        loc = self._local(st.z)
+        out = np.empty((self.P, self.T))
+        S = len(self.offsets)
+        for t0, t1 in self._chunks(self.N * S * 8 * 64):
+            G = self._core(st, resp, t0, t1, loc)
+            out[t0:t1] = self.background(st, t0, t1)[0] + resp.tail_filter(G, self.w)
+        return out
+
+    def _index(self, t0, t1, k0, n_win):
+        kk = k0[:, None] + np.arange(n_win)[None, :]
         ok = (kk >= 0) & (kk < self.T)
         tr = np.repeat(np.arange(t0, t1), self.N)[:, None]
         return np.where(ok, tr * self.T + kk, 0), ok
 
-    def predict(self, z, rho, sigma, bg) -> np.ndarray:
-        """Model traces (P, T)."""
-        gx, gy = self.Gx @ z, self.Gy @ z
-        out = np.full(self.P * self.T, float(bg))
-        for t0 in range(0, self.P, self.chunk):
-            t1 = min(t0 + self.chunk, self.P)
-            P, Q, k0 = self._pairs(t0, t1, z, gx, gy, rho, sigma)
-            Y = np.asarray(self.f_val.map(P.shape[1])(P, Q)).T          # (K, n_win)
-            idx, ok = self._index(t0, t1, k0)
-            out += np.bincount(idx[ok], Y[ok], minlength=out.size)
-        return out.reshape(self.P, self.T)
+    def linearise(self, st: SurfaceState, y: np.ndarray, wgt: np.ndarray, dtype=np.float32,
+                  need_h: bool = True) -> dict:
+        """Model, whitened chi^2, gradient g = J^T W (m - y) and (``need_h``) the Gauss-Newton
+        matrix H = J^T W J over ``pack``'s parameters, accumulated in float64 from chunk
+        products in ``dtype``. Returns dict(m, chi2, g, H)."""
+        resp = self.response(st)
+        N, T, w = self.N, self.T, self.w
+        S = len(self.offsets)
+        z, rho = st.z, st.rho
+        lz = self._local(z)
+        need_tail = "tail" in self.glob
+        dm = resp.d_mode()
+        npar = self.npar
+        H = np.zeros((npar, npar)) if need_h else None
+        g = np.zeros(npar)
+        m = np.empty((self.P, T))
+        chi2 = 0.0
+        itemsize = np.dtype(dtype).itemsize
+        slow = bool(resp.slow)
+        for t0, t1 in self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
+            nt = t1 - t0
+            G, Jg = self._geometry(t0, t1, lz, True)
+            A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
+            k0, n_win, s, Bw, parts = self._windows(st, resp, tau, c2, True, need_tail)
+            dF, dF1 = np.diff(parts[1], axis=2), np.diff(parts[2], axis=2)  # (K, S, n_win)
+            rr = np.tile(rho, nt)[:, None, None]
+            Ar = A[:, :, None] * rr
+            idx, ok = self._index(t0, t1, k0, n_win)
+            rows_loc = idx[ok] - t0 * T
 
-    def _local(self, t0, t1, z, gx, gy, rho, sigma):
-        P, Q, k0 = self._pairs(t0, t1, z, gx, gy, rho, sigma)
-        K = P.shape[1]
-        Y, J = self.f_jac.map(K)(P, Q)
-        Y = np.asarray(Y).T                                             # (K, n_win)
-        J = np.asarray(J).reshape(self.n_win, K, 5).transpose(1, 0, 2)  # (K, n_win, 5)
-        idx, ok = self._index(t0, t1, k0)
-        return Y, J, idx, ok
+            def to_rows(v):          # (K, n_win) pair windows -> (nt, T) binned
+                return np.bincount(rows_loc, v[ok], minlength=nt * T).reshape(nt, T)
 
-    def value_and_grad(self, z, rho, sigma, bg, e: np.ndarray | None = None, y=None, wgt=None):
-        """Model (P, T) and, given the weighted residual derivative e = dF/dm (P, T), the
-        gradient of F with respect to (z, rho, sigma, bg). With e None, e is computed from the
-        data y and weights wgt (F = 1/2 sum wgt (m - y)^2) after the model."""
-        gx, gy = self.Gx @ z, self.Gy @ z
-        m = np.full(self.P * self.T, float(bg))
-        parts = []
-        for t0 in range(0, self.P, self.chunk):
-            t1 = min(t0 + self.chunk, self.P)
-            Y, J, idx, ok = self._local(t0, t1, z, gx, gy, rho, sigma)
-            m += np.bincount(idx[ok], Y[ok], minlength=m.size)
-            parts.append((J, idx, ok))
-        m = m.reshape(self.P, self.T)
-        if e is None:
-            e = wgt * (m - y)
-        ef = e.ravel()
-        gl = np.zeros((self.N, 5))
-        for J, idx, ok in parts:
-            ew = np.where(ok, ef[idx], 0.0)                               # (K, n_win)
-            gk = np.einsum("kw,kwj->kj", ew, J)                           # (K, 5)
-            gl += gk.reshape(-1, self.N, 5).sum(axis=0)
-        gz = gl[:, 0] + self.Gx.T @ gl[:, 1] + self.Gy.T @ gl[:, 2]
-        return m, e, (gz, gl[:, 3], float(gl[:, 4].sum()), float(ef.sum()))
+            Gc = to_rows(np.sum(Ar * Bw, axis=1))
+            bgc, d_b1, d_bt = self.background(st, t0, t1)
+            mc = bgc + resp.tail_filter(Gc, w)
+            rc = mc - y[t0:t1]
+            wc = wgt[t0:t1]
+            m[t0:t1] = mc
+            chi2 += float(np.sum(wc * rc * rc))
+            # local derivatives (K, n_win), summed over the sub-samples: the six patch unknowns, rho
+            sdF1 = s[:, :, None] * dF1
+            ds = Jg[:, :, 2, :] / (2.0 * s[:, :, None])                    # d s / d(patch)
+            loc = np.empty((7, len(k0), n_win))
+            for c in range(6):
+                term = rr * Jg[:, :, 0, c, None] * Bw + Ar * (sdF1 * ds[:, :, c, None]
+                                                             - dF * Jg[:, :, 1, c, None])
+                loc[c] = term.sum(axis=1)
+            loc[6] = np.sum(A[:, :, None] * Bw, axis=1)
+            # global columns, binned: core ones before the slow tails (list pre), others after
+            shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
+            pre, post = [], []
+            for name in self.glob:
+                if name == "sigma":
+                    pre.append(to_rows(np.sum(Ar * st.sigma * dF1, axis=1)) + dm[0] * shift)
+                elif name == "tail":
+                    pre.append(to_rows(np.sum(Ar * np.diff(parts[3], axis=2), axis=1)) + dm[1] * shift)
+                elif name.startswith("beta"):
+                    i = int(name[4:])
+                    from .response import exp_filter
+                    post.append(exp_filter(Gc, self.taus[i], w) - Gc + dm[2 + i] * resp.tail_filter(shift, w))
+                elif name == "bg":
+                    post.append(np.ones((nt, T)))
+                elif name == "bg1":
+                    post.append(d_b1)
+                else:
+                    post.append(d_bt)
+            # the gradient in float64 (exact, whatever ``dtype``): the slow tails' adjoint first
+            e = wc * rc
+            ef = resp.tail_filter(e, w, adjoint=True)
+            node = np.broadcast_to(np.tile(np.arange(N), nt)[:, None], loc.shape[1:])[ok]
+            er = ef.ravel()[rows_loc]
+            gl = np.stack([np.bincount(node, loc[c][ok] * er, minlength=N) for c in range(7)])
+            g[:N] += gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
+            g[N:2 * N] += gl[6]
+            gcols = [float(np.sum(c * ef)) for c in pre] + [float(np.sum(c * e)) for c in post]
+            g[2 * N:] += gcols
+            if need_h:
+                H += self._gram(nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype)
+        return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}
 
-    def gauss_newton(self, z, rho, sigma, wgt: np.ndarray, fit_sigma: bool = True):
-        """J^T W J over (z, rho[, sigma], bg), built by chunks of traces (dense, n_par^2)."""
-        gx, gy = self.Gx @ z, self.Gy @ z
-        N = self.N
-        npar = 2 * N + (1 if fit_sigma else 0) + 1
-        H = np.zeros((npar, npar))
-        sw = np.sqrt(wgt).ravel()
-        GxT, GyT = self.Gx.T.tocsr(), self.Gy.T.tocsr()
-        for t0 in range(0, self.P, self.chunk):
-            t1 = min(t0 + self.chunk, self.P)
-            _, J, idx, ok = self._local(t0, t1, z, gx, gy, rho, sigma)
-            rows_used = np.unique(idx[ok])
-            rmap = np.full(self.P * self.T, -1)
-            rmap[rows_used] = np.arange(len(rows_used))
-            R = len(rows_used)
-            node = np.tile(np.arange(N), t1 - t0)[:, None] * np.ones((1, self.n_win), int)
-            rr = rmap[idx[ok]]
-            nn = node[ok]
-            Jok = J[ok] * sw[idx[ok]][:, None]
-            Jl = np.zeros(R * 4 * N)
-            for j in range(4):
-                Jl += np.bincount(rr * (4 * N) + nn + j * N, Jok[:, j], minlength=R * 4 * N)
-            Jl = Jl.reshape(R, 4 * N)
-            Jz = Jl[:, :N] + (GxT @ Jl[:, N:2 * N].T).T + (GyT @ Jl[:, 2 * N:3 * N].T).T
-            cols = [Jz, Jl[:, 3 * N:]]
-            if fit_sigma:
-                cols.append(np.bincount(rr, Jok[:, 4], minlength=R)[:, None])
-            cols.append(sw[rows_used][:, None])
-            Jc = np.hstack(cols)
-            H += Jc.T @ Jc
-        H[-1, -1] = float(np.sum(wgt))   # the background touches every bin, modelled or not
+    def _gram(self, nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype) -> np.ndarray:
+        """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
+        Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
+        time). Without slow tails only the rows some pair reaches are formed; the others carry
+        only the background."""
+        N, T = self.N, self.T
+        if resp.slow:
+            ru = np.arange(nt * T)
+        else:
+            used = np.zeros(nt * T, bool)
+            used[rows_loc] = True
+            ru = np.flatnonzero(used)
+        rmap = np.full(nt * T, -1)
+        rmap[ru] = np.arange(len(ru))
+        R = len(ru)
+        Jd = np.zeros((R, 7 * N), dtype=dtype)
+        flat = rmap[rows_loc] * (7 * N) + node
+        for c in range(7):
+            Jd.ravel()[flat + c * N] = loc[c][ok]
+        Jz = Jd[:, :N].copy()
+        for c in range(1, 6):
+            Jz += (self.opsT[c] @ Jd[:, c * N:(c + 1) * N].T).T
+        cols = [Jz, Jd[:, 6 * N:]] + [c.ravel()[ru][:, None].astype(dtype) for c in pre]
+        del Jd, Jz
+        Jc = np.hstack(cols)
+        del cols
+        if resp.slow:
+            Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
+        Jc = np.hstack([Jc] + [c.ravel()[ru][:, None].astype(dtype) for c in post])
+        Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
+        H = _gram_upper(Jc)
+        if not resp.slow:
+            rest = np.ones(nt * T, bool)
+            rest[ru] = False
+            wr = wc.ravel()[rest]
+            # the background columns of the rows no pair reaches (only "bg" is non-zero there
+            # unless a direct-return decay is modelled: add its columns too)
+            bi = [i for i, k in enumerate(self.glob) if k in ("bg", "bg1", "bgtau")]
+            B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
+            if B is not None:
+                idx = 2 * N + np.array(bi)
+                H[np.ix_(idx, idx)] += np.triu((B * wr[:, None]).T @ B)
         return H
+
+    def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:
+        """(chi^2, model) at ``st``."""
+        m = self.predict(st)
+        return float(np.sum(wgt * (m - y) ** 2)), m

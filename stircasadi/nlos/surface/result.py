@@ -15,8 +15,9 @@ class SurfaceResult:
     """Maps on ``grid`` (ny, nx): depth along the frame's w, albedo, unit normals (ny, nx, 3) facing
     the relay, their one-sigma Fisher std (inflated by sqrt(chi2/dof) when above 1), the mask of
     nodes where the data see a surface (albedo significant at ``mask_z`` sigma) and the fit's
-    numbers: impulse-response width, background, gain, prior weight and how it was chosen, the
-    whitened residual chi2/dof, per-level solver status."""
+    numbers: the response (kind, Gaussian width ``sigma_irf``, exponential ``tail`` of an emg,
+    its FWHM), background, gain, prior weight and how it was chosen, the whitened residual
+    chi2/dof, per-level solver status, the surface's ``brdf``."""
 
     grid: DepthGrid
     depth: np.ndarray
@@ -36,6 +37,11 @@ class SurfaceResult:
     dof: int
     albedo_relative: bool
     success: bool
+    response: str = "gaussian"
+    tail: float | None = None
+    tail_std: float | None = None
+    brdf: str = "lambertian"
+    fwhm_irf: float = 0.0
     levels: list = field(default_factory=list)
     wall_time_s: float = 0.0
     reasons: list = field(default_factory=list)
@@ -55,15 +61,11 @@ class SurfaceResult:
         w = self.grid.frame[3]
         return np.abs(w)[None, None, :] * self.depth_std[..., None]
 
-    @property
-    def fwhm_irf(self) -> float:
-        from ...irf import FWHM_TO_SIGMA
-        return self.sigma_irf / FWHM_TO_SIGMA
-
     def summary(self) -> dict:
         m = self.mask
         return {"nodes": list(self.shape), "mask_nodes": int(m.sum()),
                 "depth_median_m": float(np.median(self.depth[m])) if m.any() else None,
-                "irf_fwhm_m": self.fwhm_irf, "chi2_dof": self.chi2_dof,
+                "irf_fwhm_m": self.fwhm_irf, "response": self.response, "irf_sigma_m": self.sigma_irf,
+                "irf_tail_m": self.tail, "brdf": self.brdf, "chi2_dof": self.chi2_dof,
                 "prior_weight": self.prior_weight, "prior_method": self.prior_method,
                 "success": self.success, "wall_time_s": self.wall_time_s}

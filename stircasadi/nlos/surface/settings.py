@@ -14,17 +14,34 @@ class SurfaceSettings:
 
     #: nodes per side of the depth map at the finest level
     n_nodes: int = 16
-    #: coarse-to-fine levels; level k has n_nodes / 2^(levels-1-k) nodes per side (at least 4)
+    #: coarse-to-fine levels; level k has n_nodes / 2^(levels-1-k) nodes per side (at least 4);
+    #: each level starts from the previous one's maps, bilinearly interpolated
     levels: int = 2
     #: lateral extent (x0, x1, y0, y1) in the relay frame; None: the initialiser's mask
     #: bounding box grown by ``margin``
     extent: tuple | None = None
+    #: an initialiser column holds a surface when it is in the volume's mask or its albedo is at
+    #: least this fraction of the largest (the support that sets the extent and the start)
+    init_fraction: float = 0.25
     #: growth of the initialiser's bounding box on each side, as a fraction of its size
     margin: float = 0.15
-    #: fit the impulse response's Gaussian width (else it stays at ``sigma0``)
+    #: surface reflectance: "lambertian" or "retroreflective" (the return leg of a
+    #: retroreflector has no 1/d^2 and no cosines; confocal scans only)
+    brdf: str = "lambertian"
+    #: sensor response shape: "gaussian", "emg" (a Gaussian with an exponential tail, mode at
+    #: the path length: single-photon detectors) or "auto" (the relay's IRF when it is
+    #: Gaussian, else "emg")
+    response: str = "auto"
+    #: "auto": on a rectified scan that holds the relay's own return at t = 0 (single-photon
+    #: confocal scans), measure the response's slow tails and the background's decay on it
+    #: (``direct.py``); "none": never
+    direct: str = "auto"
+    #: fit the response's width (and tail); else they stay at ``sigma0`` / ``tail0``
     fit_sigma: bool = True
-    #: initial impulse-response std (metres of path); None: the relay's IRF, else 1.5 bins
+    #: initial Gaussian std of the response (metres of path); None: the relay's IRF, else 1.5 bins
     sigma0: float | None = None
+    #: initial exponential tail of an "emg" response (metres of path); None: 2 x sigma0
+    tail0: float | None = None
     #: the relay's ``gain`` is absolute (a simulated or calibrated relay): albedo is bounded by
     #: 1 and reported as such; False: a global gain is set from the initialiser and the albedo is
     #: relative (its upper bound lifted)
@@ -33,22 +50,29 @@ class SurfaceSettings:
     #: data's own Fisher bounds), "auto" (weight by the discrepancy principle; the std are then
     #: posterior std that do not cover the prior's bias), or a fixed non-negative weight
     prior: str | float = "none"
-    #: depth change allowed within one solve (metres); None: 3 bins of path
+    #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
     #: "lm": bounded Levenberg-Marquardt with the exact Gauss-Newton matrix (default; 5-20
     #: iterations); "ipopt": IPOPT with a limited-memory Hessian (hundreds of iterations)
     solver: str = "lm"
-    #: re-centred solves per level when depths reach the slack
-    outer: int = 3
-    #: iteration limit per solve (LM iterations, or IPOPT iterations)
+    #: iteration limit per level (LM iterations, or IPOPT iterations)
     max_iter: int = 30
-    #: IPOPT tolerance (relative to the scaled objective)
-    tol: float = 1e-5
+    #: convergence: relative decrease of the objective below which LM stops (IPOPT: its tol)
+    tol: float = 1e-6
     #: noise std per bin (data units); None: the relay's sigma, Poisson for counts, else
     #: estimated from the data (MAD of first differences)
     noise_sigma: float | None = None
-    #: (trace, node) pairs evaluated per chunk (memory bound)
-    chunk_pairs: int = 200_000
+    #: q: each node's cell is integrated by q x q sub-samples (its delay spread otherwise enters
+    #: as one moment-matched Gaussian, exact only for cells narrower than the response); None:
+    #: the smallest q with a sub-cell side below 2 response sigmas, at most 2 (the cost grows as
+    #: q^2), at the finest level (1 at the coarser levels, which only start the next one)
+    subsamples: int | None = None
+    #: memory of one chunk of Jacobian rows (MiB); the fit's peak memory is a few chunks plus
+    #: the (2 nodes + 4)^2 Gauss-Newton matrix
+    chunk_mb: float = 192.0
+    #: precision of the Gauss-Newton products of the solver's steps ("float32" or "float64");
+    #: the Fisher covariance is always accumulated from float64 products
+    step_precision: str = "float32"
     #: minimum significance (albedo / its std) of a node in the surface mask
     mask_z: float = 3.0
 
@@ -62,17 +86,32 @@ class SurfaceSettings:
             raise ReconstructionError(f"extent must be (x0, x1, y0, y1) with x0 < x1, y0 < y1; got {self.extent!r}.")
         if self.solver not in ("lm", "ipopt"):
             raise ReconstructionError(f"solver must be 'lm' or 'ipopt'; got {self.solver!r}.")
+        if self.brdf not in ("lambertian", "retroreflective"):
+            raise ReconstructionError(f"brdf must be 'lambertian' or 'retroreflective'; got {self.brdf!r}.")
+        if self.response not in ("auto", "gaussian", "emg"):
+            raise ReconstructionError(f"response must be 'auto', 'gaussian' or 'emg'; got {self.response!r}.")
+        if self.direct not in ("auto", "none"):
+            raise ReconstructionError(f"direct must be 'auto' or 'none'; got {self.direct!r}.")
+        if self.step_precision not in ("float32", "float64"):
+            raise ReconstructionError(f"step_precision must be 'float32' or 'float64'; got {self.step_precision!r}.")
         if isinstance(self.prior, str):
             if self.prior not in ("auto", "none"):
                 raise ReconstructionError(f"prior must be 'auto', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
-        for name in ("sigma0", "z_slack", "noise_sigma"):
+        for name in ("sigma0", "tail0", "z_slack", "noise_sigma"):
             v = getattr(self, name)
             if v is not None and not (v > 0):
                 raise ReconstructionError(f"{name} must be > 0 or None; got {v!r}.")
-        if self.max_iter < 1 or self.outer < 1 or self.chunk_pairs < 1000:
-            raise ReconstructionError("max_iter and outer must be >= 1 and chunk_pairs >= 1000.")
+        if self.subsamples is not None and not (1 <= int(self.subsamples) <= 8):
+            raise ReconstructionError(f"subsamples must be within 1..8 or None; got {self.subsamples!r}.")
+        if self.max_iter < 1 or not (self.chunk_mb >= 1):
+            raise ReconstructionError(f"max_iter must be >= 1 and chunk_mb >= 1; got {self.max_iter!r}, "
+                                      f"{self.chunk_mb!r}.")
+        if not (0 < self.init_fraction <= 1):
+            raise ReconstructionError(f"init_fraction must be within (0, 1]; got {self.init_fraction!r}.")
+        if not (0 <= self.margin <= 2):
+            raise ReconstructionError(f"margin must be within [0, 2]; got {self.margin!r}.")
         return self
 
     @classmethod

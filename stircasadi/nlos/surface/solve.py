@@ -1,12 +1,9 @@
 """One IPOPT solve of a level's surface NLP (CasADi ``nlpsol`` over a Callback objective).
 
-The NLP, in scaled unknowns x = [(z - z_c) / s_z, rho / s_rho, log(sigma / sigma_c), b / s_b]:
-
-    min  F(x) = 1/2 sum_pk wgt_pk (m_pk(x) - y_pk)^2 + 1/2 lam || Lap z / h ||^2
-    s.t. |z - z_c| <= slack,  0 <= rho <= rho_max,  sigma in [sigma_c / 2, 2 sigma_c]
-
-(rho_max = 1 with an absolute relay gain: a hard physical rule, not a penalty). The objective
-and its exact gradient come from ``SurfaceModel.value_and_grad`` (CasADi AD of the pair model);
+The NLP is the one ``lm.py`` states (whitened least squares + smoothness prior, albedo and
+response bounds; rho_max = 1 with an absolute relay gain: a hard physical rule, not a penalty),
+in unknowns scaled to about 1. The objective and its exact gradient come from
+``SurfaceModel.linearise`` (CasADi AD of the pair geometry, the response's derivatives);
 IPOPT runs with its limited-memory Hessian, since the Gauss-Newton matrix of a surface couples
 every node with every other (dense) and is formed only once, for the Fisher information.
 """
@@ -79,55 +76,41 @@ class _Gradient(ca.Callback):
         return [ca.DM(self.obj._eval(arg[0])[1][None, :])]
 
 
-def solve_level(model, y, wgt, z_c, rho0, sigma_c, bg0, lam, lap, h, slack, rho_max,
-                fit_sigma, max_iter, tol, s_rho, s_b):
-    """Run IPOPT on one level. Returns dict(z, rho, sigma, bg, status, iterations, f)."""
+def solve_level(model, y, wgt, st, lam, Rz, bounds, max_iter, tol) -> dict:
+    """Run IPOPT on one level from ``st``. Returns dict(state, status, iterations, success, f)."""
     N = model.N
-    s_z = max(slack / 3.0, 1e-4)
-    n = 2 * N + (1 if fit_sigma else 0) + 1
-    Lz = lap
-
-    def unpack(x):
-        z = z_c + s_z * x[:N]
-        rho = s_rho * x[N:2 * N]
-        sig = sigma_c * np.exp(x[2 * N]) if fit_sigma else sigma_c
-        bg = s_b * x[-1]
-        return z, rho, sig, bg
+    th0 = bounds.project(model.pack(st))
+    scale = np.maximum(np.abs(th0), 1e-3)
+    scale[:N] = max(float(np.std(th0[:N])), 1e-3)
+    scale[N:2 * N] = max(float(np.max(th0[N:2 * N])), 1e-3)
+    shift = np.zeros_like(th0)
+    shift[:N] = th0[:N]
 
     def fn(x):
-        z, rho, sig, bg = unpack(x)
-        m, e, (gz, grho, gsig, gbg) = model.value_and_grad(z, rho, sig, bg, y=y, wgt=wgt)
-        r = m - y
-        f = 0.5 * float(np.sum(wgt * r * r))
+        th = shift + scale * x
+        s = model.unpack(th, st)
+        lin = model.linearise(s, y, wgt, need_h=False)
+        f, g = 0.5 * lin["chi2"], lin["g"]
         if lam > 0:
-            q = Lz @ z / h
-            f += 0.5 * lam * float(q @ q)
-            gz = gz + lam * (Lz.T @ q) / h
-        g = np.concatenate([gz * s_z, grho * s_rho] + ([np.array([gsig * sig])] if fit_sigma else [])
-                           + [np.array([gbg * s_b])])
-        return f, g
+            q = Rz @ s.z
+            f += 0.5 * lam * float(s.z @ q)
+            g = g.copy()
+            g[:N] += lam * q
+        return f, g * scale
 
-    cb = _Objective(fn, n)
-    x = ca.MX.sym("x", n)
+    cb = _Objective(fn, model.npar)
+    x = ca.MX.sym("x", model.npar)
     opts = {"ipopt.print_level": 0, "print_time": 0, "ipopt.sb": "yes",
             "ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": int(max_iter),
             "ipopt.tol": float(tol), "ipopt.limited_memory_max_history": 30,
             "ipopt.acceptable_iter": 10, "ipopt.acceptable_tol": 1e-5}
     solver = ca.nlpsol("surface", "ipopt", {"x": x, "f": cb(x)}, opts)
-    lb = np.concatenate([-3.0 * np.ones(N), np.zeros(N)] + ([np.array([np.log(0.5)])] if fit_sigma else [])
-                        + [np.array([-np.inf])])
-    ub = np.concatenate([3.0 * np.ones(N), np.full(N, rho_max / s_rho)]
-                        + ([np.array([np.log(2.0)])] if fit_sigma else []) + [np.array([np.inf])])
-    x0 = np.concatenate([np.zeros(N), np.clip(rho0 / s_rho, 0, ub[N:2 * N])]
-                        + ([np.array([0.0])] if fit_sigma else []) + [np.array([bg0 / s_b])])
-    res = solver(x0=x0, lbx=lb, ubx=ub)
-    st = solver.stats()
-    xs = np.asarray(res["x"], float).ravel()
-    z, rho, sig, bg = unpack(xs)
-    at_bound = bool(np.any(np.abs(xs[:N]) > 2.95))
-    return {"z": z, "rho": rho, "sigma": float(sig), "bg": float(bg),
-            "status": str(st.get("return_status")), "iterations": int(st.get("iter_count", 0)),
-            "success": bool(st.get("success", False)) or st.get("return_status") in
+    res = solver(x0=(th0 - shift) / scale, lbx=(bounds.lo - shift) / scale, ubx=(bounds.hi - shift) / scale)
+    stats = solver.stats()
+    th = bounds.project(shift + scale * np.asarray(res["x"], float).ravel())
+    return {"state": model.unpack(th, st), "status": str(stats.get("return_status")),
+            "iterations": int(stats.get("iter_count", 0)),
+            "success": bool(stats.get("success", False)) or stats.get("return_status") in
             ("Solve_Succeeded", "Solved_To_Acceptable_Level"),
-            "f": float(res["f"]), "z_at_slack": at_bound,
-            "sigma_at_bound": bool(fit_sigma and abs(abs(xs[2 * N]) - np.log(2.0)) < 1e-3)}
+            "f": float(res["f"]), "at_bound": [n for i, n in enumerate(model.glob)
+                                               if bounds.at_bound(th)[2 * N + i]]}
