@@ -47,6 +47,22 @@ QUANTITIES = (("position", 3), ("normal", 3), ("area", 1), ("albedo", 1), ("albe
               ("specular", 1), ("exponent", 1))
 
 
+def _generalised_eigh(A, B):
+    """Solve A u = mu B u for symmetric A and positive semi-definite B, robust to round-off.
+
+    Cholesky-based ``eigh(A, B)`` first; when round-off leaves B (information plus a prior many
+    decades weaker) a hair from positive definite, whiten by B's own eigendecomposition with its
+    eigenvalues clipped at 1e-14 of the largest (the directions clipped carry no information)."""
+    try:
+        return eigh(A, B)
+    except np.linalg.LinAlgError:
+        s, V = np.linalg.eigh(B)
+        s = np.maximum(s, 1e-14 * max(float(s.max(initial=0.0)), 1e-300))
+        W = V / np.sqrt(s)[None, :]
+        mu, Q = np.linalg.eigh(0.5 * (W.T @ A @ W + (W.T @ A @ W).T))
+        return mu, W @ Q
+
+
 def report_function(model):
     """CasADi function x -> q (all reported numbers, patch-major per quantity) and the layout
     {name: (offset, width)} of q."""
@@ -137,7 +153,7 @@ def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
     dg = np.sqrt(np.maximum(np.diag(Fz) + np.diag(Pz), 1e-300))
     Fn = Fz / np.outer(dg, dg)
     Sn = Fn + Pz / np.outer(dg, dg)
-    mu, U = eigh(Fn, 0.5 * (Sn + Sn.T))  # U^T Sn U = I, U^T Fn U = diag(mu)
+    mu, U = _generalised_eigh(Fn, 0.5 * (Sn + Sn.T))  # U^T Sn U = I, U^T Fn U = diag(mu)
     mu = np.clip(mu, 0.0, 1.0)
     lam = mu / np.maximum(1.0 - mu, 1e-300)
     # a direction is unseen when the data know it less than the weak prior does, or when its
