@@ -27,7 +27,6 @@ import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
-
 def _hidden_visibility(g, cap):
     """Third-bounce peak / noise std of each hidden patch (simulated alone)."""
     from stircasadi.scene import Scene
@@ -42,7 +41,6 @@ def _hidden_visibility(g, cap):
         tr = simulate(s1, g.grid, g.sensor_clean, bounces=3, per_bounce=True)
         out[int(h)] = float(tr.per_bounce[2].max() / g.sigma)
     return out
-
 
 def one(seed: int) -> dict:
     from stircasadi.pipeline import estimate_capture
@@ -83,7 +81,6 @@ def one(seed: int) -> dict:
         rec["trace"] = traceback.format_exc()[-1500:]
     return rec
 
-
 def summarise(recs: list[dict]) -> dict:
     ok = [r for r in recs if r.get("verdict") == "OK"]
     zs = np.array([z for r in ok for _, z in r.get("z", []) if z is not None and np.isfinite(z)])
@@ -101,7 +98,6 @@ def summarise(recs: list[dict]) -> dict:
             "within_2sigma": float(np.mean(zs <= 2)) if len(zs) else None,
             "hidden_visible": len(hid), "hidden_placed_or_flagged": hid_ok,
             "median_wall_s": float(np.median([r["wall_s"] for r in recs if "wall_s" in r])) if recs else None}
-
 
 def main(argv):
     args = [a for a in argv if not a.startswith("--")]
@@ -126,14 +122,21 @@ def main(argv):
                   f"nvis={r.get('params', {}).get('n_visible', '?')!s:3s} nhid={r.get('params', {}).get('n_hidden', '?')} "
                   f"{r.get('verdict', 'ERROR'):10s} max z {zmax:8.3g} {r.get('wall_s', 0):6.1f}s "
                   f"{(r.get('error') or '; '.join(r.get('reasons', [])))[:110]}", flush=True)
-    summ = summarise(recs)
-    summ["wall_total_s"] = time.perf_counter() - t0
+            _write(first, n, recs, time.perf_counter() - t0, partial=True)  # nothing measured is lost
+    summ = _write(first, n, recs, time.perf_counter() - t0, partial=False)
     print(json.dumps(summ, indent=1))
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"coverage_{first}_{first + n}.json").write_text(json.dumps({"summary": summ, "records": recs},
-                                                                            default=str))
     return 0
 
+def _write(first, n, recs, wall, partial):
+    summ = summarise(recs)
+    summ["wall_total_s"] = wall
+    summ["partial"] = partial
+    RESULTS.mkdir(exist_ok=True)
+    out = RESULTS / f"coverage_{first}_{first + n}.json"
+    tmp = out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"summary": summ, "records": recs}, default=str))
+    tmp.replace(out)
+    return summ
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))
