@@ -254,8 +254,14 @@ def _make(patches, name, noise_rel, calibrated, bin_width=0.005, fwhm_ps=120.0, 
                           seed=seed)
 
 
-def nine_on_three_planes(calibrated: bool = False, noise_rel: float = 1e-3, seed: int = 0) -> GeneratedScene:
-    """Nine patches on three planes of three (a corner: back wall, left and right panels)."""
+def nine_on_three_planes(calibrated: bool = False, noise_rel: float = 1e-3, seed: int = 0,
+                         layout: str = "row") -> GeneratedScene:
+    """Nine patches on three planes of three (a corner: back wall, left and right panels).
+
+    ``layout="row"``: each plane's three patches on a line (a plane fit cannot give the normal;
+    only second-bounce amplitudes can); ``"triangle"``: three corners of a square of the plane."""
+    if layout not in ("row", "triangle"):
+        raise ValueError(f"layout must be 'row' or 'triangle'; got {layout!r}.")
     rng = np.random.default_rng(101)
     alb = rng.uniform(0.25, 0.9, 9)
     specs = [((0.0, 0.0, 1.5), (0.0, 0.0, -1.0)),
@@ -263,7 +269,11 @@ def nine_on_three_planes(calibrated: bool = False, noise_rel: float = 1e-3, seed
              ((0.5, 0.05, 1.1), tuple(_unit((-0.8, 0.1, -0.6))))]
     patches = []
     for k, (c, n) in enumerate(specs):
-        patches += _grid_patches(np.array(c), np.array(n), 3, 1, 0.06, 0.15, alb[3 * k:3 * k + 3], f"S{k}_")
+        if layout == "row":
+            patches += _grid_patches(np.array(c), np.array(n), 3, 1, 0.06, 0.15, alb[3 * k:3 * k + 3], f"S{k}_")
+        else:
+            sq = _grid_patches(np.array(c), np.array(n), 2, 2, 0.06, 0.15, np.r_[alb[3 * k:3 * k + 3], 0.5], f"S{k}_")
+            patches += sq[:3]
     return _make(patches, "nine_on_three_planes", noise_rel, calibrated, seed=seed)
 
 

@@ -1,0 +1,231 @@
+"""The failures of issue "Trust", each rebuilt from our own scenes (``stircasadi.testing.scenes``)
+and run blind: an estimate is either right within its stated error bars or flagged.
+
+"Right" is judged by ``stircasadi.testing.compare`` (the blind_score rule): a successful estimate
+may hold no number beyond 4 sigma and no number without a std that is not exact. "Flagged" means
+``success`` false (verdict UNRELIABLE) or a clear ``StircasadiError`` (the CLI's non-zero exit).
+"""
+from __future__ import annotations
+
+import ast
+import copy
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stircasadi.errors import StircasadiError
+from stircasadi.pipeline import estimate_capture
+from stircasadi.testing import scenes as S
+from stircasadi.testing.compare import compare
+from stircasadi.timegrid import TimeGrid
+
+PKG = Path(__file__).resolve().parents[1] / "stircasadi"
+Z_MAX = 4.0
+
+
+def _blind(cap):
+    """Estimate with the truth stripped: (json dict, None) or (None, the error)."""
+    try:
+        return estimate_capture(dataclasses.replace(cap, truth=None)).to_json_dict(), None
+    except StircasadiError as exc:
+        return None, exc
+
+
+def _right_or_flagged(d, truth):
+    """The blind_score verdict: 'OK' (success, every number within 4 sigma), 'FLAGGED' or
+    'SILENT-WRONG' (success with a number beyond 4 sigma or without a std)."""
+    if d is None or not d["success"]:
+        return "FLAGGED", None
+    c = compare(d, truth)
+    zs = [r["z"] for r in c.rows if r["z"] is not None and r["kind"] != "norm"]
+    if any(not np.isfinite(z) or z > Z_MAX for z in zs):
+        return "SILENT-WRONG", c
+    return "OK", c
+
+
+# ----------------------------------------------------------------------------- never reads truth
+_INVERSE = ["pipeline.py", "view.py", "geometry", "joint", "model"]
+
+
+def _code_mentions_of_truth(path: Path) -> list[str]:
+    """Attribute accesses ``.truth`` and string constants naming ``truth`` outside docstrings."""
+    tree = ast.parse(path.read_text())
+    docs = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef)):
+            if node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant):
+                docs.add(id(node.body[0].value))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr == "truth":
+            out.append(f"{path.name}:{node.lineno} .truth")
+        elif (isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs
+              and node.value.strip("/").lower() in ("truth", "truth/")):
+            out.append(f"{path.name}:{node.lineno} '{node.value}'")
+    return out
+
+
+def test_inverse_code_never_reads_truth():
+    files = []
+    for name in _INVERSE:
+        p = PKG / name
+        files += sorted(p.rglob("*.py")) if p.is_dir() else [p]
+    assert len(files) > 20
+    hits = [h for f in files for h in _code_mentions_of_truth(f)]
+    assert not hits, f"the inverse route touches the truth: {hits}"
+
+
+def _poisoned(truth: dict) -> dict:
+    """A truth that is wrong everywhere: an estimator reading it would change its answer."""
+    bad = copy.deepcopy(truth)
+    for k in ("positions", "normals"):
+        if k in bad:
+            bad[k] = np.asarray(bad[k]) * 1.7 + 0.3
+    for k in ("areas", "albedo"):
+        if k in bad:
+            bad[k] = np.asarray(bad[k]) * 0.37
+    return bad
+
+
+def _strip_timing(d):
+    if isinstance(d, dict):
+        return {k: _strip_timing(v) for k, v in d.items() if "time" not in k and k not in ("wall_s", "timings", "created")}
+    if isinstance(d, list):
+        return [_strip_timing(v) for v in d]
+    return d
+
+
+@pytest.mark.parametrize("problem", ["hidden_corner", "three_patch", "glossy_patch", "lambertian_walls"])
+def test_problem_blind_equals_problem_with_a_poisoned_truth(problem):
+    """Every fast listed problem: the estimate with truth/ stripped equals the one with a truth that
+    is wrong everywhere (the large three_planes problems are covered by the code scan above)."""
+    from stircasadi.cli import simulate_problem
+
+    _, _, _, cap = simulate_problem(problem)
+    a, ea = _blind(cap)
+    try:
+        b = estimate_capture(dataclasses.replace(cap, truth=_poisoned(cap.truth))).to_json_dict()
+        eb = None
+    except StircasadiError as exc:
+        b, eb = None, exc
+    assert (ea is None) == (eb is None)
+    if ea is not None:
+        assert str(ea) == str(eb)
+        return
+    assert _strip_timing(a)["patches"] == _strip_timing(b)["patches"]
+    assert a["verdict"] == b["verdict"]
+
+
+# ----------------------------------------------------------------------------- the listed failures
+def test_nine_patches_on_three_planes_uncalibrated_normals_estimated_or_not_identified():
+    """3 planes x 3 patches in a row each, uncalibrated: no plane fit can give a normal (three
+    collinear points), so each normal is either estimated with a std that covers its error or
+    reported null with the reason (the old plane grouping gave one vector for all nine, 36-72
+    degrees off, no std). Albedos and areas, which the second bounces do identify, come with stds
+    that cover their errors."""
+    g = S.nine_on_three_planes(calibrated=False, layout="row")
+    cap = g.capture()
+    d, err = _blind(cap)
+    verdict, c = _right_or_flagged(d, cap.truth)
+    assert verdict == "OK", (verdict, err, d and d["reasons"])
+    for p in d["patches"]:
+        if p["normal"] is None:
+            assert "normal" in p["unidentifiable"] and "identifiability" in p["notes"]["normal"]
+    alb = [r for r in c.rows if r["quantity"] == "albedo" and r["visible"] and r["z"] is not None]
+    assert len(alb) == 9
+
+
+@pytest.mark.xfail(strict=True, reason="known silent-wrong (issue Trust, left open): uncalibrated, three "
+                   "non-collinear patches per plane, noise seed 0: normals 2-3 deg off at 3-4 sigma and every "
+                   "albedo +4 sigma; seeds 1 and 2 are right. Not yet understood (local optimum or a "
+                   "linearisation that does not hold along the camera-position direction).")
+def test_nine_patches_on_three_planes_triangles_uncalibrated():
+    g = S.nine_on_three_planes(calibrated=False, layout="triangle")
+    cap = g.capture()
+    d, err = _blind(cap)
+    assert _right_or_flagged(d, cap.truth)[0] in ("OK", "FLAGGED")
+
+
+@pytest.mark.parametrize("sides", [(0.05, 0.06), (0.10, 0.14)])
+def test_relay_wall_two_hidden_squares_both_placed(sides):
+    """12-patch relay wall, two hidden squares: both placed within 1 cm, within their stds
+    (before: one missed, or both estimates on one patch and the other 1.18 m off)."""
+    g = S.relay_wall_two_squares(sides)
+    cap = g.capture()
+    d, err = _blind(cap)
+    verdict, c = _right_or_flagged(d, cap.truth)
+    assert verdict == "OK", (verdict, err, d and d["reasons"])
+    assert not c.missed and not c.spurious
+    dist = [r["err"] for r in c.rows if r["quantity"] == "position" and r["kind"] == "norm" and not r["visible"]]
+    assert len(dist) == 2 and max(dist) < 0.01
+
+
+@pytest.mark.parametrize("sides", [(0.02, 0.10), (0.05, 0.05)])
+def test_three_by_three_relay_wall_two_hidden(sides):
+    """3 x 3 relay wall, two hidden patches of 2-10 cm: placed within 1 cm and covered by their
+    stds, or flagged; never a model build that asks for TiB (before: MemoryError traceback)."""
+    hidden = [((-0.1, 0.05, 0.8), (0.1, 0.0, 1.0), sides[0], 0.7),
+              ((0.12, -0.05, 0.7), (-0.1, 0.1, 1.0), sides[1], 0.6)]
+    g = S.relay_wall(3, 3, hidden)
+    cap = g.capture()
+    d, err = _blind(cap)
+    verdict, c = _right_or_flagged(d, cap.truth)
+    assert verdict in ("OK", "FLAGGED"), verdict
+    if verdict == "OK":
+        dist = [r["err"] for r in c.rows if r["quantity"] == "position" and r["kind"] == "norm" and not r["visible"]]
+        assert len(dist) == 2 and max(dist) < 0.01
+
+
+@pytest.mark.parametrize("make", [lambda: S.relay_wall(4, 3, ()), lambda: S.nine_on_three_planes(calibrated=True)],
+                         ids=["relay-wall", "three-planes"])
+def test_no_hidden_patch_invented_where_there_is_none(make):
+    """Scenes without hidden patches: none placed, no 'unexplained returns' reported (before:
+    2-23 of 81 traces reported unexplained hidden returns)."""
+    cap = make().capture()
+    d, err = _blind(cap)
+    assert err is None and d["success"], (err, d and d["reasons"])
+    assert not [p for p in d["patches"] if not p["visible"]]
+    assert not any("unexplained" in r for r in d["reasons"])
+    assert _right_or_flagged(d, cap.truth)[0] == "OK"
+
+
+@pytest.mark.slow
+def test_swapped_traces_are_flagged():
+    """Two illumination rows swapped (a mislabelled scan), or two traces of one row swapped: the
+    data contradict every geometry, so the estimate is refused or flagged, never OK."""
+    cap = S.nine_on_three_planes(calibrated=True).capture()
+    rows = cap.stir.copy()
+    rows[[1, 4]] = rows[[4, 1]]
+    d, err = _blind(dataclasses.replace(cap, stir=rows))
+    assert _right_or_flagged(d, cap.truth)[0] == "FLAGGED"
+    tr = cap.stir.copy()
+    tr[0, 2], tr[0, 5] = cap.stir[0, 5].copy(), cap.stir[0, 2].copy()
+    d, err = _blind(dataclasses.replace(cap, stir=tr))
+    assert _right_or_flagged(d, cap.truth)[0] == "FLAGGED"
+
+
+def test_mislabelled_time_axis_is_flagged():
+    """Bin width 4 m instead of 5 mm, or the start shifted by -5 m: flagged with the reason
+    (a pure rescaling the data cannot tell is held to the plausibility limits)."""
+    cap = S.nine_on_three_planes(calibrated=True).capture()
+    gr = cap.grid
+    d, err = _blind(dataclasses.replace(cap, grid=TimeGrid(gr.start, 4.0, gr.n_bins)))
+    assert _right_or_flagged(d, cap.truth)[0] == "FLAGGED"
+    if d is not None:
+        assert any("plausib" in r for r in d["reasons"])
+    d, err = _blind(dataclasses.replace(cap, grid=TimeGrid(gr.start - 5.0, gr.bin_width, gr.n_bins)))
+    assert _right_or_flagged(d, cap.truth)[0] == "FLAGGED"
+
+
+@pytest.mark.parametrize("make", [S.coplanar_wall_uncalibrated, S.collinear_plus_one, S.equal_path_hidden_pair],
+                         ids=["coplanar-uncalibrated", "collinear-plus-one", "equal-path-hidden-pair"])
+def test_hard_cases_are_right_or_flagged(make):
+    """A coplanar wall with no second bounces, three collinear patches and one off the line, two
+    hidden patches with equal path lengths: never confident and wrong (before: 0.1-0.6 m off,
+    12-41 cm off, a 47-sigma albedo, all with success)."""
+    cap = make().capture()
+    d, err = _blind(cap)
+    verdict, c = _right_or_flagged(d, cap.truth)
+    assert verdict in ("OK", "FLAGGED"), (verdict, d and d["reasons"])
