@@ -120,7 +120,7 @@ def timings() -> dict:
         "s": time.perf_counter() - t, "n_renders": r.metadata["n_renders"], "bins": r.grid.n_bins}
     path = data_dir() / "otoole2018_confocal" / "data_dot_chart_40cm.mat"
     if path.exists():
-        from stircasadi.acquisition.nlos_mat import read_stanford_lct
+        from stircasadi.acquisition.importers import read_stanford_lct
         cap = read_stanford_lct(path)
         t = time.perf_counter()
         separate_capture(cap)

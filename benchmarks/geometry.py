@@ -121,7 +121,7 @@ def time_vs_M(Ms=(10, 50, 100, 200, 500)):
 
 
 def real_scans():
-    from stircasadi.acquisition import nlos_mat as nm
+    from stircasadi.acquisition import importers as nm
     from stircasadi.geometry import estimate_geometry
     rows = []
     for name in ("data_resolution_chart_40cm", "data_dot_chart_40cm", "data_exit_sign", "data_s_u"):

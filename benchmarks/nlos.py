@@ -2,7 +2,7 @@
 bp on the Stanford 40 cm charts, and the surface fit's time and memory against grid size. Prints
 a table and writes benchmarks/results/nlos.json.
 
-    PYTHONPATH=. /work/venvs/nlos/bin/python benchmarks/nlos.py      # y-tal needs numpy < 2
+    PYTHONPATH=. <venv with y-tal>/bin/python benchmarks/nlos.py    # y-tal needs numpy < 2
     python benchmarks/nlos.py --no-ytal [--surface 8,16,32] [--charts resolution,dot]
 
 Peak memory is tracemalloc's peak of Python/NumPy allocations during the call (y-tal and ours
@@ -25,9 +25,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from stircasadi.acquisition.nlos_mat import read_stanford_lct
+from stircasadi.acquisition.importers import read_stanford_lct
 from stircasadi.datasets import data_dir
-from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct
+from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct, plane_fit
 
 CHARTS = {"resolution": "data_resolution_chart_40cm.mat", "dot": "data_dot_chart_40cm.mat"}
 
@@ -91,19 +91,8 @@ def ytal_bp(cap, cg, n, nz):
 
 
 def plane_of(s):
-    """Albedo-weighted plane through the surface mask (3 MAD outliers dropped twice): centre
-    depth on the scan's axis and tilt from the wall normal (deg)."""
-    m = s.mask
-    P, wts = s.points()[m], s.albedo[m]
-    for _ in range(3):
-        c = np.average(P, axis=0, weights=wts)
-        n = np.linalg.svd((P - c) * np.sqrt(wts)[:, None], full_matrices=False)[2][-1]
-        n = n if n[2] < 0 else -n
-        d = (P - c) @ n
-        keep = np.abs(d - np.median(d)) < 3 * (1.4826 * np.median(np.abs(d - np.median(d))) + 1e-4)
-        P, wts = P[keep], wts[keep]
-    z0 = c[2] + (n[0] * c[0] + n[1] * c[1]) / n[2]
-    return float(z0), float(math.degrees(math.acos(min(1.0, -n[2]))))
+    """Albedo-weighted plane through the surface mask: depth on the scan's axis, tilt (deg)."""
+    return plane_fit(s.points()[s.mask], s.albedo[s.mask])
 
 
 def main(argv=None):

@@ -90,7 +90,7 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
         raise ModelError(f"method={method!r} is for relay-wall scans (paired or rectified traces); "
                          "a full STIR with its legs is estimated by the joint fit (method=None).")
     from .geometry import estimate_geometry
-    from .joint.checks import run_checks
+    from .joint.checks import identifiability_check, run_checks
     from .joint.fit import fit_joint
     from .joint.policy import VisibleStart
     from .joint.result import patch_records
@@ -118,6 +118,7 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     first = geo.onsets.get("r")
     first = None if first is None else 2.0 * np.asarray(first) if view.colocated else None
     checks = run_checks(view, fit, settings, first_paths=first)
+    checks.append(identifiability_check(view, geo.ambiguities))
     est = fit.estimate
     n_h = est.values["position"].shape[0] - M
     base = int(max(view.ids.max(), view.ill.max(), view.obs.max())) + 1

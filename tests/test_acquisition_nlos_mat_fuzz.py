@@ -1,4 +1,4 @@
-"""Fuzzed .mat files through the nlos_mat readers: clear ImportFormatError, never a crash."""
+"""Fuzzed .mat files through the relay-wall scan importers: clear ImportFormatError, never a crash."""
 from __future__ import annotations
 
 import numpy as np

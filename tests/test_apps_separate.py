@@ -107,7 +107,7 @@ def test_real_confocal_scan_gate_mode(shared_data):
     path = shared_data / "otoole2018_confocal" / "data_dot_chart_40cm.mat"
     if not path.exists():
         pytest.skip("real data not available")
-    from stircasadi.acquisition.nlos_mat import read_stanford_lct
+    from stircasadi.acquisition.importers import read_stanford_lct
 
     cap = read_stanford_lct(path)
     sep = separate_capture(cap)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.io as sio
 
-from stircasadi.acquisition import nlos_mat as nm
+from stircasadi.acquisition import importers as nm
 from stircasadi.constants import C
 from stircasadi.datasets import data_dir
 from stircasadi.errors import ImportFormatError
@@ -69,7 +69,7 @@ def test_importers_on_real_files_and_errors(tmp_path):
         cap = nm.read_ccsocr(statue)
         assert cap.traces.shape == (4096, 512) and np.isclose(cap.grid.bin_width, 32e-12 * C)
         assert np.allclose(np.ptp(cap.illuminated_xyz[:, :2], axis=0), 2.0)
-        assert nm.detect(statue) == "ccsocr"
+        assert nm.sniff(statue) == "ccsocr"
     if tuan.exists():
         cap = nm.read_general_nlos(tuan)
         assert cap.traces.shape[0] == 4096 and cap.observed_xyz.shape == (4096, 3)
@@ -77,7 +77,7 @@ def test_importers_on_real_files_and_errors(tmp_path):
         s = cap.traces.sum(0)
         k = int(np.argmax(s[:100]))
         assert -20 < (cap.grid.start / cap.grid.bin_width + k) < -10
-        assert nm.detect(tuan) == "general-nlos"
+        assert nm.sniff(tuan) == "general-nlos"
     bad = tmp_path / "bad.mat"
     sio.savemat(bad, {"rect_data": np.zeros((4, 4, 8))})
     with pytest.raises(ImportFormatError, match="width"):
@@ -85,7 +85,7 @@ def test_importers_on_real_files_and_errors(tmp_path):
     sio.savemat(bad, {"something": np.zeros(3)})
     with pytest.raises(ImportFormatError, match="rect_data"):
         nm.read_stanford_lct(bad)
-    assert nm.detect(bad) is None
+    assert nm.sniff(bad) is None
 
 
 # Documented figures (data NOTES.md, half path = depth-like distance from the wall, metres):

@@ -9,7 +9,7 @@ import pytest
 from nlos_twins import confocal_capture, paired_capture, render, surface_patches
 from stircasadi.datasets import data_dir
 from stircasadi.errors import ReconstructionError
-from stircasadi.nlos import VolumeSettings, backprojection, fk, from_capture, lct
+from stircasadi.nlos import VolumeSettings, backprojection, fk, from_capture, lct, plane_fit
 from stircasadi.nlos.lct import resampling_operator
 
 
@@ -91,7 +91,7 @@ def test_stanford_40cm_charts_depth(name, method):
     f = STANFORD / name
     if not f.exists():
         pytest.skip(f"data file absent: {f}")
-    from stircasadi.acquisition.nlos_mat import read_stanford_lct
+    from stircasadi.acquisition.importers import read_stanford_lct
 
     rl = from_capture(read_stanford_lct(f))
     V = method(rl, VolumeSettings(bin_factor=4, diffuse=False, t_max=1.6))
@@ -99,19 +99,6 @@ def test_stanford_40cm_charts_depth(name, method):
     sel = m.albedo > 0.3
     assert sel.sum() >= 3
     assert abs(np.median(m.depth[sel]) - 0.40) < 0.012
-
-
-def _plane(points, weights):
-    """Weighted plane (3 MAD outliers dropped twice): depth on the scan's axis, tilt (deg)."""
-    P, w = points, weights
-    for _ in range(3):
-        c = np.average(P, axis=0, weights=w)
-        n = np.linalg.svd((P - c) * np.sqrt(w)[:, None], full_matrices=False)[2][-1]
-        n = n if n[2] < 0 else -n
-        d = (P - c) @ n
-        keep = np.abs(d - np.median(d)) < 3 * (1.4826 * np.median(np.abs(d - np.median(d))) + 1e-4)
-        P, w = P[keep], w[keep]
-    return c[2] + (n[0] * c[0] + n[1] * c[1]) / n[2], np.degrees(np.arccos(min(1.0, -n[2])))
 
 
 @pytest.mark.parametrize("name", ["data_resolution_chart_40cm.mat", "data_dot_chart_40cm.mat"])
@@ -128,7 +115,7 @@ def test_stanford_40cm_charts_surface_fit(name):
     f = STANFORD / name
     if not f.exists():
         pytest.skip(f"data file absent: {f}")
-    from stircasadi.acquisition.nlos_mat import read_stanford_lct
+    from stircasadi.acquisition.importers import read_stanford_lct
     from stircasadi.nlos import estimate_capture
 
     cap = read_stanford_lct(f)
@@ -137,10 +124,23 @@ def test_stanford_40cm_charts_surface_fit(name):
     s = est.surface
     assert s.response == "gaussian" and len(s.extras["slow_tails"]) == 2
     assert abs(s.fwhm_irf - 0.018) < 0.2 * 0.018
-    z0, tilt = _plane(s.points()[s.mask], s.albedo[s.mask])
+    z0, tilt = plane_fit(s.points()[s.mask], s.albedo[s.mask])
     m = fk(from_capture(cap), VolumeSettings(bin_factor=4, diffuse=False, t_max=1.6)).maps(z_min=0.2)
     sel = m.albedo > 0.3
-    z_fk, tilt_fk = _plane(m.points()[sel], m.albedo[sel])
+    z_fk, tilt_fk = plane_fit(m.points()[sel], m.albedo[sel])
     assert s.mask.sum() >= 20 and s.chi2_dof < 6
     assert 0.400 <= z0 < 0.413 and abs(z0 - z_fk) < 0.008
     assert tilt < 8.0 and tilt_fk < 4.0
+
+
+def test_plane_fit_closed_form_with_outliers():
+    """A plane z = 0.4 + 0.1 x (tilt atan(0.1) = 5.71 deg) with 10 % of points 5 cm off it: the
+    robust fit returns the plane's depth on the axis and its tilt."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-0.2, 0.2, (300, 2))
+    z = 0.4 + 0.1 * xy[:, 0] + rng.normal(0, 1e-4, 300)
+    z[:30] += 0.05
+    d, tilt = plane_fit(np.c_[xy, z], rng.uniform(0.5, 1.0, 300))
+    assert abs(d - 0.4) < 1e-4 and abs(tilt - np.degrees(np.arctan(0.1))) < 0.05
+    with pytest.raises(ValueError, match="plane_fit needs"):
+        plane_fit(np.zeros((2, 3)), np.ones(2))

@@ -229,3 +229,30 @@ def test_hard_cases_are_right_or_flagged(make):
     d, err = _blind(cap)
     verdict, c = _right_or_flagged(d, cap.truth)
     assert verdict in ("OK", "FLAGGED"), (verdict, d and d["reasons"])
+
+
+def test_geometry_the_onsets_leave_a_family_is_flagged():
+    """The coverage study's seed 1: two coplanar visible patches (no second bounce between them)
+    seen by an uncalibrated camera and one hidden patch. The onsets leave the visible embedding and
+    the hidden position a family; the fit's amplitudes picked a member 0.79 m from the truth with a
+    0.5 mm std and reported success. Now the identifiability check fails and says why."""
+    g = S.generate(1)
+    assert g.params["calibrated"] is False and g.params["n_visible"] == 2 and g.params["n_hidden"] == 1
+    cap = g.capture()
+    d, err = _blind(cap)
+    assert d is not None and not d["success"] and d["verdict"] == "UNRELIABLE"
+    chk = {c["name"]: c for c in d["checks"]}
+    assert not chk["identifiability"]["passed"]
+    assert "missing" in chk["identifiability"]["message"] and "circle" in chk["identifiability"]["message"]
+
+
+def test_identifiability_check_passes_where_a_prior_or_the_data_fix_the_geometry():
+    """hidden_corner declares flatland (the circle meets the plane in two mirror points): passes;
+    a calibrated relay wall with two hidden squares: passes."""
+    from stircasadi.cli import simulate_problem
+
+    _, _, _, cap = simulate_problem("hidden_corner")
+    d, err = _blind(cap)
+    assert {c["name"]: c for c in d["checks"]}["identifiability"]["passed"]
+    d, err = _blind(S.relay_wall_two_squares().capture())
+    assert {c["name"]: c for c in d["checks"]}["identifiability"]["passed"]

@@ -91,9 +91,8 @@ def solve_sparse_lm(nlp, x0=None, max_iter: int = 100, tol: float = 1e-6) -> Sol
     Nonlinear inequality constraints (stability, Phong energy) are checked at the end: a
     violation fails the solve."""
     import casadi as ca
-    from scipy.linalg import null_space
 
-    from .uncertainty import prior_std_x
+    from .uncertainty import equality_null_space, prior_std_x
 
     t0 = time.perf_counter()
     n = nlp.n_x
@@ -104,12 +103,7 @@ def solve_sparse_lm(nlp, x0=None, max_iter: int = 100, tol: float = 1e-6) -> Sol
     lam_t = nlp.settings.cost.tikhonov
     gl = np.asarray(nlp.gloss_idx, int)
     sg = np.sqrt(2.0 * nlp.settings.cost.gloss_prior) if len(gl) else 0.0
-    eq = np.flatnonzero(np.isfinite(nlp.lbg) & (nlp.lbg == nlp.ubg)) if len(nlp.lbg) else np.zeros(0, int)
-    if len(eq):
-        A = np.asarray(ca.densify(ca.Function("Jg", [nlp.xx], [ca.jacobian(nlp.g, nlp.xx)])(x)))[eq]
-        Z = null_space(A)
-    else:
-        Z = np.eye(n)
+    Z = equality_null_space(nlp, x)
     fixed = nlp.lbx == nlp.ubx
     Z[fixed] = 0.0
 

@@ -36,7 +36,7 @@ from scipy.linalg import eigh, null_space
 
 from ..model.vertices import patch_quantities
 
-__all__ = ["report_function", "QUANTITIES", "fisher", "PRIOR_RANGE", "prior_std_x", "degenerate"]
+__all__ = ["report_function", "QUANTITIES", "fisher", "equality_null_space", "PRIOR_RANGE", "prior_std_x", "degenerate"]
 
 #: plausible range (theta units) of each kind of unknown: the weak prior along null directions
 PRIOR_RANGE = {"albedo": 1.0, "area": 1.0, "specular": 1.0, "exponent": 100.0, "position": 1.0,
@@ -45,6 +45,17 @@ PRIOR_RANGE = {"albedo": 1.0, "area": 1.0, "specular": 1.0, "exponent": 100.0, "
 #: reported per-patch quantities and their widths, in the order of ``report_function``
 QUANTITIES = (("position", 3), ("normal", 3), ("area", 1), ("albedo", 1), ("albedo_area", 1),
               ("specular", 1), ("exponent", 1))
+
+
+def equality_null_space(nlp, x) -> np.ndarray:
+    """(n, n_free) orthonormal basis of the null space of the Jacobian of ``nlp``'s equality
+    constraints at ``x`` (the gauge that fixes a free frame, Helmholtz reciprocity); the identity
+    when there are none."""
+    eq = np.flatnonzero(np.isfinite(nlp.lbg) & (nlp.lbg == nlp.ubg)) if len(nlp.lbg) else np.zeros(0, int)
+    if not len(eq):
+        return np.eye(len(nlp.lbx))
+    A = np.asarray(ca.densify(ca.Function("Jg", [nlp.xx], [ca.jacobian(nlp.g, nlp.xx)])(x)))[eq]
+    return null_space(A)
 
 
 def _generalised_eigh(A, B):
@@ -133,13 +144,7 @@ def fisher(nlp, x, prior_info=None, frozen=None) -> dict:
     if len(frozen):  # unknowns held at their start: only the weak prior speaks for them
         F = F.copy()
         F[frozen, frozen] += 1.0 / prior_std_x(nlp)[frozen] ** 2
-    # equality constraints active at x: gauge, reciprocity
-    eq = np.flatnonzero(np.isfinite(nlp.lbg) & (nlp.lbg == nlp.ubg)) if len(nlp.lbg) else np.zeros(0, int)
-    if len(eq):
-        A = np.asarray(ca.densify(ca.Function("Jg", [nlp.xx], [ca.jacobian(nlp.g, nlp.xx)])(x)))[eq]
-        Z = null_space(A)
-    else:
-        Z = np.eye(n)
+    Z = equality_null_space(nlp, x)  # equality constraints active at x: gauge, reciprocity
     n_free = Z.shape[1]
     dof = max(len(nlp.y) - n_free, 1)
     Fz = Z.T @ F @ Z

@@ -7,10 +7,10 @@ from .fk import fk
 from .lct import lct
 from .relay import Relay, from_capture, from_stir
 from .settings import VolumeSettings
-from .volume import Maps, Volume
+from .volume import Maps, Volume, plane_fit
 
 __all__ = ["lct", "fk", "backprojection", "Relay", "from_capture", "from_stir", "VolumeSettings",
-           "Volume", "Maps"]
+           "Volume", "Maps", "plane_fit"]
 from .estimate import METHODS, NLOSEstimate, estimate_capture
 from .surface import SurfaceResult, SurfaceSettings, fit_surface
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Volume", "Maps"]
+__all__ = ["Volume", "Maps", "plane_fit"]
 
 
 @dataclass
@@ -79,3 +79,23 @@ class Volume:
 
     def nbytes(self) -> int:
         return int(self.vol.nbytes)
+
+
+def plane_fit(points, weights) -> tuple[float, float]:
+    """Weighted plane through reconstructed points (``points`` (N, 3) in the scan's frame, z the
+    wall's normal axis; ``weights`` (N,) >= 0, e.g. albedo), with the points beyond 3 MADs of the
+    plane dropped twice. Returns the plane's depth where it crosses the scan's axis (x = y = 0),
+    metres, and its tilt from the wall normal, degrees."""
+    P = np.asarray(points, float)
+    w = np.asarray(weights, float)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3 or w.shape != (len(P),):
+        raise ValueError(f"plane_fit needs points (N >= 3, 3) and weights (N,); got {P.shape} and {w.shape}.")
+    for _ in range(3):
+        c = np.average(P, axis=0, weights=w)
+        n = np.linalg.svd((P - c) * np.sqrt(w)[:, None], full_matrices=False)[2][-1]
+        n = n if n[2] < 0 else -n
+        d = (P - c) @ n
+        keep = np.abs(d - np.median(d)) < 3 * (1.4826 * np.median(np.abs(d - np.median(d))) + 1e-4)
+        P, w = P[keep], w[keep]
+    return float(c[2] + (n[0] * c[0] + n[1] * c[1]) / n[2]), float(np.degrees(np.arccos(min(1.0, -n[2]))))
+
