@@ -121,6 +121,9 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
         st.raise_on_failure = raise_
     if sol.success:
         return sol
+    rescued = _rescue(nlp, sol)
+    if rescued is not None:
+        return rescued
     frozen = degenerate(nlp, sol.x)
     if not frozen:
         if raise_ and strict:
@@ -137,6 +140,32 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
         return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
     finally:
         st.raise_on_failure = raise_
+
+
+def _rescue(nlp, sol):
+    """IPOPT stopped short (iteration limit, a failed step computation, restoration) on a
+    weighted least-squares problem: continue from its last iterate with Gauss-Newton /
+    Levenberg-Marquardt on the same cost and constraints (``lm.solve_sparse_lm``), which has no
+    barrier to drive and no KKT system to factor. Its solution counts only when it converges and
+    satisfies every constraint; otherwise None (the caller goes on as before)."""
+    if nlp.poisson or nlp.pem:
+        return None
+    from .lm import solve_sparse_lm
+
+    st = nlp.settings.ipopt
+    raise_ = st.raise_on_failure
+    st.raise_on_failure = False
+    try:
+        alt = solve_sparse_lm(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    except SolverError:
+        return None
+    finally:
+        st.raise_on_failure = raise_
+    if alt.success and alt.cost <= sol.cost * (1 + 1e-9) + 1e-9:
+        log.info(f"IPOPT stopped ({sol.status}, cost {sol.cost:.6g}); Gauss-Newton from its last "
+                 f"iterate converged (cost {alt.cost:.6g}, {alt.iterations} iterations)")
+        return alt
+    return None
 
 
 def _glossy_patches(view, start, settings, make_nlp, stir, notes) -> np.ndarray:
