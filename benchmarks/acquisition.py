@@ -29,7 +29,7 @@ def _old_write(cap, path) -> None:
     """The layout before compression: every dataset contiguous float64."""
     import h5py
 
-    from stircasadi.capture import _write_header
+    from stircasadi.capture_io import _write_header
 
     with h5py.File(path, "w") as f:
         _write_header(f, cap)
