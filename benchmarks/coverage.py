@@ -1,6 +1,6 @@
 """Coverage study: does every reported std cover its error on scenes no one tuned the estimator on?
 
-    python benchmarks/coverage.py [N_SCENES] [FIRST_SEED] [--timeout S] [--workers W]
+    python benchmarks/coverage.py [N_SCENES] [FIRST_SEED] [--timeout=S] [--workers=W] [--seeds=3,7,...]
 
 Draws scenes from the seeded generator (``stircasadi.testing.scenes.generate``), simulates each
 through its sensor, estimates it BLIND (truth stripped) with ``stircasadi.pipeline.estimate_capture``
@@ -99,6 +99,47 @@ def summarise(recs: list[dict]) -> dict:
             "hidden_visible": len(hid), "hidden_placed_or_flagged": hid_ok,
             "median_wall_s": float(np.median([r["wall_s"] for r in recs if "wall_s" in r])) if recs else None}
 
+def _child(seed, conn):
+    conn.send(one(seed))
+    conn.close()
+
+
+def _run_all(seeds, workers, timeout):
+    """Yield (seed, record) in seed order, each scene in its own process, at most ``workers`` at
+    a time; a scene past ``timeout`` seconds is terminated (its record says so) so it cannot hold
+    a worker and starve the scenes after it."""
+    ctx = mp.get_context("spawn")
+    pending, running, done = list(seeds), {}, {}
+    order = list(seeds)
+    while order:
+        while pending and len(running) < workers:
+            s = pending.pop(0)
+            a, b = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_child, args=(s, b), daemon=True)
+            p.start()
+            running[s] = (p, a, time.perf_counter())
+        for s, (p, a, t) in list(running.items()):
+            if a.poll():
+                try:
+                    done[s] = a.recv()
+                except EOFError:
+                    done[s] = {"seed": s, "error": "worker died (killed for memory?)"}
+                p.join(5)
+                del running[s]
+            elif not p.is_alive():
+                done[s] = {"seed": s, "error": f"worker died with exit code {p.exitcode} (killed for memory?)"}
+                del running[s]
+            elif time.perf_counter() - t > timeout:
+                p.terminate()
+                p.join(5)
+                done[s] = {"seed": s, "error": f"timeout after {timeout:g} s"}
+                del running[s]
+        while order and order[0] in done:
+            s = order.pop(0)
+            yield s, done.pop(s)
+        time.sleep(0.2)
+
+
 def main(argv):
     args = [a for a in argv if not a.startswith("--")]
     n = int(args[0]) if args else 20
@@ -108,31 +149,30 @@ def main(argv):
     seeds = list(range(first, first + n))
     recs = []
     t0 = time.perf_counter()
-    with mp.get_context("spawn").Pool(workers, maxtasksperchild=1) as pool:
-        futs = {s: pool.apply_async(one, (s,)) for s in seeds}
-        for s, f in futs.items():
-            try:
-                r = f.get(timeout=timeout)
-            except mp.TimeoutError:
-                r = {"seed": s, "error": f"timeout after {timeout:g} s"}
-            recs.append(r)
-            zmax = max([z for _, z in r.get("z", []) if z is not None] + [0])
-            print(f"seed {s:4d} {r.get('params', {}).get('kind', '?'):6s} "
-                  f"cal={r.get('params', {}).get('calibrated', '?')!s:5s} "
-                  f"nvis={r.get('params', {}).get('n_visible', '?')!s:3s} nhid={r.get('params', {}).get('n_hidden', '?')} "
-                  f"{r.get('verdict', 'ERROR'):10s} max z {zmax:8.3g} {r.get('wall_s', 0):6.1f}s "
-                  f"{(r.get('error') or '; '.join(r.get('reasons', [])))[:110]}", flush=True)
-            _write(first, n, recs, time.perf_counter() - t0, partial=True)  # nothing measured is lost
+    seeds_arg = next((a.split("=")[1] for a in argv if a.startswith("--seeds=")), None)
+    if seeds_arg:  # an explicit list (e.g. re-running the scenes a change affects)
+        seeds = [int(x) for x in seeds_arg.split(",") if x.strip()]
+        first, n = seeds[0], 0
+    for s, r in _run_all(seeds, workers, timeout):
+        recs.append(r)
+        zmax = max([z for _, z in r.get("z", []) if z is not None] + [0])
+        print(f"seed {s:4d} {r.get('params', {}).get('kind', '?'):6s} "
+              f"cal={r.get('params', {}).get('calibrated', '?')!s:5s} "
+              f"nvis={r.get('params', {}).get('n_visible', '?')!s:3s} nhid={r.get('params', {}).get('n_hidden', '?')} "
+              f"{r.get('verdict', 'ERROR'):10s} max z {zmax:8.3g} {r.get('wall_s', 0):6.1f}s "
+              f"{(r.get('error') or '; '.join(r.get('reasons', [])))[:110]}", flush=True)
+        _write(first, n, recs, time.perf_counter() - t0, partial=True)  # nothing measured is lost
     summ = _write(first, n, recs, time.perf_counter() - t0, partial=False)
     print(json.dumps(summ, indent=1))
     return 0
+
 
 def _write(first, n, recs, wall, partial):
     summ = summarise(recs)
     summ["wall_total_s"] = wall
     summ["partial"] = partial
     RESULTS.mkdir(exist_ok=True)
-    out = RESULTS / f"coverage_{first}_{first + n}.json"
+    out = RESULTS / (f"coverage_{first}_{first + n}.json" if n else f"coverage_seeds_{first}.json")
     tmp = out.with_suffix(".json.tmp")
     tmp.write_text(json.dumps({"summary": summ, "records": recs}, default=str))
     tmp.replace(out)
