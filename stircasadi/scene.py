@@ -33,6 +33,7 @@ import numpy as np
 
 from .brdf import BRDF, Lambertian, Mirror, Phong
 from .errors import PhysicsWarning, SceneError
+from .radiometry import facing_matrix
 
 _UNIT_TOL = 1e-6
 
@@ -229,15 +230,8 @@ class Scene:
     @cached_property
     def patch_visibility(self) -> np.ndarray:
         """(M, M) bool: leg k -> i exists (facing each other and unoccluded); diagonal False."""
-        z, n = self.positions, self.normals
-        vec = z[None, :, :] - z[:, None, :]
-        d = self.distances.copy()
-        np.fill_diagonal(d, 1.0)
-        u = vec / d[..., None]
-        cos_k = np.einsum("kid,kd->ki", u, n)
-        cos_i = -np.einsum("kid,id->ki", u, n)
-        vis = (cos_k > 0) & (cos_i > 0)
-        np.fill_diagonal(vis, False)
+        z = self.positions
+        vis = facing_matrix(z, self.normals)
         if self.needs_occlusion:
             kk, ii = np.nonzero(np.triu(vis, 1))
             if len(kk):
