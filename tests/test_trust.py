@@ -258,17 +258,15 @@ def test_identifiability_check_passes_where_a_prior_or_the_data_fix_the_geometry
     assert {c["name"]: c for c in d["checks"]}["identifiability"]["passed"]
 
 
-def test_ipopt_step_failure_is_finished_by_gauss_newton(caplog):
+def test_ipopt_step_failure_is_finished_by_gauss_newton():
     """The coverage study's seed 7 (calibrated relay wall of 7 patches, one hidden patch): IPOPT's
     final fit ended with Error_In_Step_Computation at a point whose cost Gauss-Newton can still
     lower; the fit continues from IPOPT's last iterate with Gauss-Newton and the estimate is
     judged by its checks (right or flagged) instead of refused as a failed solve."""
-    import logging
-
     g = S.generate(7)
     cap = g.capture()
-    with caplog.at_level(logging.INFO, logger="stircasadi.joint.fit"):
-        d, err = _blind(cap)
+    d, err = _blind(cap)
     assert err is None, err
-    assert any("Gauss-Newton from its last iterate converged" in r.getMessage() for r in caplog.records)
+    assert d["stages"]["joint"]["solver"] == "sparse-lm"   # the final fit is Gauss-Newton's
+    assert d["stages"]["joint"]["success"]
     assert _right_or_flagged(d, cap.truth)[0] in ("OK", "FLAGGED")

@@ -156,7 +156,9 @@ def _rescue(nlp, sol):
     raise_ = st.raise_on_failure
     st.raise_on_failure = False
     try:
-        alt = solve_sparse_lm(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+        # a continuation, not a second solve: a point Gauss-Newton cannot finish in 30 steps is
+        # not near a solution (and the caller's refusal comes sooner)
+        alt = solve_sparse_lm(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), max_iter=30)
     except SolverError:
         return None
     finally:
