@@ -13,6 +13,8 @@ The noise level is the capture's when given and consistent with the data's off-m
 """
 from __future__ import annotations
 
+import contextlib
+
 import copy
 import time
 from dataclasses import dataclass, field
@@ -114,14 +116,11 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
         return solve_sparse_lm(nlp, x0=x0 if x0 is not None else (warm.x if warm is not None else None))
     st = nlp.settings.ipopt
     raise_ = st.raise_on_failure
-    st.raise_on_failure = False
-    try:
+    with _raising(st, False):
         sol = solve_nlp(nlp, warm=warm, x0=x0)
-    finally:
-        st.raise_on_failure = raise_
-    if sol.success:
-        return sol
-    rescued = _rescue(nlp, sol)
+        if sol.success:
+            return sol
+        rescued = _rescue(nlp, sol)
     if rescued is not None:
         return rescued
     frozen = degenerate(nlp, sol.x)
@@ -135,11 +134,19 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
     nlp.frozen = frozen
     nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
     nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
-    st.raise_on_failure = raise_ and strict
-    try:
+    with _raising(st, raise_ and strict):
         return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+
+
+@contextlib.contextmanager
+def _raising(ipopt_settings, flag: bool):
+    """Within the block, failed solves raise (``flag``) or return their Solution; restored after."""
+    old = ipopt_settings.raise_on_failure
+    ipopt_settings.raise_on_failure = flag
+    try:
+        yield
     finally:
-        st.raise_on_failure = raise_
+        ipopt_settings.raise_on_failure = old
 
 
 def _rescue(nlp, sol):
@@ -147,22 +154,15 @@ def _rescue(nlp, sol):
     weighted least-squares problem: continue from its last iterate with Gauss-Newton /
     Levenberg-Marquardt on the same cost and constraints (``lm.solve_sparse_lm``), which has no
     barrier to drive and no KKT system to factor. Its solution counts only when it converges and
-    satisfies every constraint; otherwise None (the caller goes on as before)."""
+    satisfies every constraint; otherwise None (the caller goes on as before). Called with
+    failures not raising."""
     if nlp.poisson or nlp.pem:
         return None
     from .lm import solve_sparse_lm
 
-    st = nlp.settings.ipopt
-    raise_ = st.raise_on_failure
-    st.raise_on_failure = False
-    try:
-        # a continuation, not a second solve: a point Gauss-Newton cannot finish in 30 steps is
-        # not near a solution (and the caller's refusal comes sooner)
-        alt = solve_sparse_lm(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), max_iter=30)
-    except SolverError:
-        return None
-    finally:
-        st.raise_on_failure = raise_
+    # a continuation, not a second solve: a point Gauss-Newton cannot finish in 30 steps is not
+    # near a solution (and the caller's refusal comes sooner)
+    alt = solve_sparse_lm(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), max_iter=30)
     if alt.success and alt.cost <= sol.cost * (1 + 1e-9) + 1e-9:
         log.info(f"IPOPT stopped ({sol.status}, cost {sol.cost:.6g}); Gauss-Newton from its last "
                  f"iterate converged (cost {alt.cost:.6g}, {alt.iterations} iterations)")
