@@ -153,7 +153,9 @@ def test_kills_at_20_random_instants_lose_nothing(tmp_path):
 
 def test_second_process_on_the_same_output_is_refused(tmp_path):
     out = tmp_path / "c.h5"
-    first = Child(out)
+    # the first scan is slowed to ~0.4 s per row (an emulator-only setting) so that it is still
+    # running when the second process starts, however loaded the machine
+    first = Child(out, "--emulate-sync-hz", "1e4")
     assert first.wait_for(b"acquire: journal")
     second = Child(out, "--resume")
     rc2 = second.finish()
