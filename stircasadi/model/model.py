@@ -13,7 +13,8 @@ Equation
 The transient rendering equation of ``stircasadi.transport`` expanded into paths of 1..K
 bounces (``model/output.py``: amplitude, delay, bin integral — the numeric transport's formulas,
 mirrors included); vertices and their geometry in ``model/vertices.py``; paths and windows in
-``model/paths.py``; the unknown registry in ``model/parameters.py``.
+``model/paths.py``; the unknown registry in ``model/parameters.py``; the energy terms in
+``model/energy.py``.
 
 What it neglects
 ----------------
@@ -37,7 +38,8 @@ from ..radiometry import facing_matrix, perpendicular
 from ..timegrid import TimeGrid
 from .output import OutputStructure, build_output, path_terms
 from .parameters import ParameterSet
-from .paths import enumerate_paths, legs_between, windows
+from .paths import enumerate_paths, general_triples, legs_between, windows
+from .energy import flux_column_sums
 from .vertices import VertexLayout, patch_quantities, vertex_quantities
 
 __all__ = ["TransientModel", "ModelInfo"]
@@ -316,7 +318,7 @@ class TransientModel:
             g.trace = rows[r] * len(self.obs_ids) + c
         self.paths = paths
         if self.general.any():
-            self.triples = self._general_triples()
+            self.triples = general_triples(self.paths, self.layout.patch, self.general)
             if not len(self.triples):
                 raise ModelError("The general-BRDF patches lie on no path of the model.")
         if pr.n_x == 0 and not self.general.any():
@@ -386,19 +388,6 @@ class TransientModel:
         vq = vertex_quantities(patch_quantities(th, self), self.layout, self)
         vq["phi"] = float(np.exp(x[-1]) * self.phi) if self.gain_free else self.phi
         return vq
-
-    def _general_triples(self) -> np.ndarray:
-        out = set()
-        P = self.layout.patch
-        for g in self.paths:
-            v = P[g.verts]
-            n = v.shape[1]
-            for m in range(n):
-                prev = v[:, m - 1] if m > 0 else np.full(len(v), -1)
-                nxt = v[:, m + 1] if m < n - 1 else np.full(len(v), -2)
-                sel = self.general[v[:, m]]
-                out.update(zip(prev[sel].tolist(), v[sel, m].tolist(), nxt[sel].tolist()))
-        return np.array(sorted(out), int).reshape(-1, 3)
 
     def triple_index(self, prev, i, nxt) -> np.ndarray:
         key = {tuple(t): n for n, t in enumerate(self.triples.tolist())}
@@ -495,25 +484,7 @@ class TransientModel:
         return stir.reshape(-1)[self.support]
 
     def energy_terms(self):
-        """Symbolic flux-transfer column sums c_k = sum_r rho_r F_{k->r} (M,), F the fraction of
-        k's diffuse emission landing on r; max_k c_k < 1 bounds the transport's spectral radius
-        below 1 (stable, energy-conserving). rho = albedo (+ specular for Phong; albedo / area
-        where the unknown is the product)."""
-        from ..radiometry import direct_leg
-
+        """Symbolic flux-transfer column sums (M,) for the energy constraint: see
+        ``model.energy.flux_column_sums``."""
         self._require_setup("energy_terms()")
-        pq = patch_quantities(self.theta_sym, self)
-        h, r = np.nonzero(self.visibility)
-        if not len(h):
-            return ca.MX.zeros(self.M, 1)
-        z = pq["z"]
-        nn = pq["n"]
-        tk = lambda e, i: e[:, i.tolist()]  # noqa: E731
-        leg = direct_leg(tuple(tk(c, h) for c in z), tuple(tk(c, r) for c in z),
-                         tuple(tk(c, h) for c in nn), tuple(tk(c, r) for c in nn), tk(pq["area"], r))
-        rho = pq["albedo"]
-        mk = ca.DM(self.albedo_product.astype(float)).T
-        rho = mk * rho / pq["area"] + (1 - mk) * rho + pq["specular"] * ca.DM(self.glossy.astype(float)).T
-        terms = leg.g / math.pi * tk(rho, r)
-        S = ca.DM(ca.Sparsity.triplet(self.M, len(h), h.tolist(), list(range(len(h)))), np.ones(len(h)))
-        return ca.mtimes(S, terms.T)
+        return flux_column_sums(self)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..brdf import Mirror
 
-__all__ = ["LegTable", "PathGroup", "legs_between", "enumerate_paths", "windows"]
+__all__ = ["LegTable", "PathGroup", "legs_between", "enumerate_paths", "windows", "general_triples"]
 
 
 @dataclass
@@ -134,3 +134,18 @@ def windows(groups, tau_of, reach: np.ndarray, support_lo: float, support_hi: fl
     tr = np.repeat(np.arange(n_traces), seg_len)
     kk = np.arange(n_sup) - np.repeat(seg_start[:-1], seg_len) + np.repeat(lo, seg_len)
     return lo, hi, seg_start, tr * nb + kk, tr
+
+
+def general_triples(paths, vertex_patch, general) -> np.ndarray:
+    """The (previous, patch, next) triples at which a general-BRDF patch is visited by ``paths``
+    (previous -1: the source; next -2: the camera), sorted: one unknown f_kij each."""
+    out = set()
+    for g in paths:
+        v = vertex_patch[g.verts]
+        n = v.shape[1]
+        for m in range(n):
+            prev = v[:, m - 1] if m > 0 else np.full(len(v), -1)
+            nxt = v[:, m + 1] if m < n - 1 else np.full(len(v), -2)
+            sel = general[v[:, m]]
+            out.update(zip(prev[sel].tolist(), v[sel, m].tolist(), nxt[sel].tolist()))
+    return np.array(sorted(out), int).reshape(-1, 3)
