@@ -161,7 +161,7 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
         sf = np.sqrt(np.maximum(np.diag(cov_x)[j0:j0 + n_f], 0.0)) * model.fkij_scale
         values["fkij"] = sol.x[j0:j0 + n_f] * model.fkij_scale
         std["fkij"] = sf
-        ident["fkij"] = np.isfinite(sf) & (sf < us.max_rel_std * model._general_bounds[1])
+        ident["fkij"] = np.isfinite(sf) & (sf < us.max_rel_std * model.general_bounds[1])
         free["fkij"] = np.ones(n_f, bool)
     fl = list(flags or [])
     frozen = set(getattr(nlp, "frozen", []) or [])

@@ -131,7 +131,7 @@ class TransientModel:
         self.footprint = np.full(M, np.nan)
         self.general = np.zeros(M, bool)
         self.triples = np.zeros((0, 3), int)
-        self._general_bounds = (0.0, 10.0 / math.pi, 1.0 / math.pi)
+        self.general_bounds = (0.0, 10.0 / math.pi, 1.0 / math.pi)
         self.extended: dict[int, tuple[int, int]] = {}
         self.gain_free = False
         self._gain_bounds = (1e-12, 1e12)
@@ -261,7 +261,7 @@ class TransientModel:
             raise ModelError("A general-BRDF patch has no albedo unknown (its f_kij are the unknowns); "
                              "declare set_unknown('albedo', ...) on the other patches only.")
         self.general[sel] = True
-        self._general_bounds = (0.0, float(upper), float(scale))
+        self.general_bounds = (0.0, float(upper), float(scale))
         return self
 
     def set_unknown_gain(self, initial: float = 1.0, lower: float = 1e-12, upper: float = 1e12) -> "TransientModel":
@@ -326,7 +326,7 @@ class TransientModel:
                              "'specular', 'exponent', 'position', 'tilt') before setup().")
         n_f = len(self.triples)
         n_g = int(self.gain_free)
-        lo_, hi_, sc_ = self._general_bounds
+        lo_, hi_, sc_ = self.general_bounds
         self.x = ca.MX.sym("x", pr.n_x + n_f + n_g)
         xs, xf = self.x[:pr.n_x], self.x[pr.n_x:pr.n_x + n_f]
         f0 = np.array([self._patch_albedo0(i) / math.pi for _, i, _ in self.triples]) if n_f else np.zeros(0)
