@@ -4,12 +4,17 @@
 
 Draws scenes from the seeded generator (``stircasadi.testing.scenes.generate``), simulates each
 through its sensor, estimates it BLIND (truth stripped) with ``stircasadi.pipeline.estimate_capture``
-and scores it with ``stircasadi.report.compare``. Prints, and writes to
-``benchmarks/results/coverage.json``:
+and scores it twice: ``stircasadi.report.compare`` (the blind_score rule, one row per vector) and
+``stircasadi.testing.compare`` (one row per Gaussian number). Prints, and writes to
+``benchmarks/results/coverage_<first>_<last>.json`` (or ``coverage_seeds_<first>.json``) after
+every scene, each record with its estimate.json so the scoring can be recomputed:
 
-* silent-wrong: estimates that report success with a number beyond 4 sigma (must be 0);
-* coverage: the fraction of reported numbers (in successful estimates) with |err|/sigma <= 1
-  (target 60-75 %) and <= 2 (target >= 93 %);
+* silent-wrong: estimates that report success with a number beyond 4 sigma or an error without
+  a std (must be 0), by either scoring;
+* coverage: the fraction of the estimated numbers of successful estimates (position and normal
+  components in the truth's frame, albedo, area, albedo x area ...; given inputs, which carry no
+  std and no error, left out) with |err|/sigma <= 1 (target 60-75 %) and <= 2 (target >= 93 %),
+  overall and per quantity;
 * hidden patches: for every true hidden patch of >= 2 cm whose third-bounce peak is >= 20 noise
   std, whether it was placed within 1 cm or the result was flagged;
 * verdicts, wall times and failures (exceptions are recorded, never fatal).
@@ -46,6 +51,7 @@ def one(seed: int) -> dict:
     from stircasadi.pipeline import estimate_capture
     from stircasadi.progress import set_verbosity
     from stircasadi.report import compare, vec, alignment
+    from stircasadi.testing.compare import compare as tcompare
     from stircasadi.testing.scenes import generate
 
     set_verbosity(-1)
@@ -65,6 +71,12 @@ def one(seed: int) -> dict:
         rows = compare(d, truth)
         rec["z"] = [(r["quantity"], None if r["z"] is None else float(r["z"])) for r in rows
                     if r["quantity"] != "match"]
+        # coverage numbers: every estimated Gaussian number (position and normal components in
+        # the truth's frame, scalars), given inputs (no std, exact) left out
+        comp = tcompare(d, truth)
+        rec["zc"] = [(r["quantity"], r["component"], bool(r["visible"]), float(r["z"]))
+                     for r in comp.select()]
+        rec["estimate"] = d                       # kept so any later scoring can be recomputed
         # hidden patches: placed within 1 cm of each true one?
         Q, s, st = alignment(d, truth)
         H = np.array([(vec(p.get("position")) - s) @ Q + st for p in d["patches"] if not p["visible"]
@@ -82,15 +94,28 @@ def one(seed: int) -> dict:
     return rec
 
 def summarise(recs: list[dict]) -> dict:
+    """Silent-wrong by the blind_score rule (any reported number, vector norms included, beyond
+    4 sigma or without a std in a successful estimate); coverage over the Gaussian numbers of the
+    successful estimates (``zc``: components and scalars with a std, given inputs left out; older
+    records without ``zc`` fall back to the per-vector rows)."""
     ok = [r for r in recs if r.get("verdict") == "OK"]
-    zs = np.array([z for r in ok for _, z in r.get("z", []) if z is not None and np.isfinite(z)])
-    inf_z = sum(1 for r in ok for _, z in r.get("z", []) if z is not None and not np.isfinite(z))
+    zl = [[z for *_, z in r["zc"]] if "zc" in r else [z for _, z in r.get("z", []) if z is not None]
+          for r in ok]
+    zs = np.array([z for zz in zl for z in zz if np.isfinite(z)])
+    inf_z = sum(1 for zz in zl for z in zz if not np.isfinite(z))
     silent = [r["seed"] for r in ok if any(z is not None and (not np.isfinite(z) or z > 4)
-                                           for _, z in r.get("z", []))]
+                                           for _, z in r.get("z", []))
+              or any(not np.isfinite(z) or z > 4 for *_, z in r.get("zc", []))]
     hid = [(h, r.get("verdict")) for r in recs for h in r.get("hidden", [])
            if h["side"] >= 0.02 and h["snr"] >= 20]
     hid_ok = sum(1 for h, v in hid if h["dist"] <= 0.01 or v != "OK")
-    return {"n_scenes": len(recs), "n_ok": len(ok),
+    byq = {}
+    for r in ok:
+        for q, _, vis, z in r.get("zc", []):
+            byq.setdefault(f"{q}{'' if vis else ' (hidden)'}", []).append(z)
+    per_q = {q: {"n": len(v), "within_1sigma": float(np.mean(np.array(v) <= 1)),
+                 "within_2sigma": float(np.mean(np.array(v) <= 2))} for q, v in sorted(byq.items())}
+    return {"n_scenes": len(recs), "n_ok": len(ok), "per_quantity": per_q,
             "n_unreliable": sum(1 for r in recs if r.get("verdict") == "UNRELIABLE"),
             "n_error": sum(1 for r in recs if "error" in r),
             "silent_wrong_seeds": silent, "n_numbers": int(len(zs) + inf_z), "n_infinite_z": inf_z,
