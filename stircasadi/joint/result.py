@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 
 from .uncertainty import QUANTITIES, fisher, report_function
@@ -183,7 +182,7 @@ def assemble(nlp, sol, names, given: dict | None = None, prior_info=None, flags=
                          sigma=unc["sigma_used"], sigma_source=nlp.sigma_source, flags=fl,
                          timings={"solve_s": sol.solve_time_s, "solver_build_s": sol.build_time_s,
                                   "model_build_s": model.info.build_time_s},
-                         extra={"null_dim": unc["null_dim"], "free_x": free_x, "cost": float(sol.cost),
+                         extra={"null_dim": unc["null_dim"], "free_x": free_x, "cov_x": cov_x, "null_x": unc["null"], "cost": float(sol.cost),
                                 "ar1": float(sol.x[-1]) if nlp.pem else None, "solution": sol,
                                 "model": {"n_paths": model.info.n_paths,
                                           "n_variable_paths": model.info.n_variable_paths,

@@ -241,11 +241,20 @@ class CheckSettings:
     """A residual return above this many noise std of the matched filter is unexplained."""
     reciprocity_k: float = 6.0
     """Traces (i, j) and (j, i) disagree when their whitened difference exceeds this (rms x sqrt n)."""
+    linearity_k: float = 4.0
+    """Along an unknown's one-sigma direction the chi2 must rise within this factor of its
+    linearised rise (``checks._linearity``)."""
+    linearity_max_dirs: int = 300
+    """At most this many unknowns' directions are probed (evenly spread over x)."""
 
     def validate(self) -> "CheckSettings":
         _positive("trace_p", self.trace_p)
         _positive("unexplained_k", self.unexplained_k)
         _positive("reciprocity_k", self.reciprocity_k)
+        if not self.linearity_k > 1.0:
+            raise ModelError(f"linearity_k must be > 1 (a factor); got {self.linearity_k!r}.")
+        if int(self.linearity_max_dirs) < 1:
+            raise ModelError(f"linearity_max_dirs must be >= 1; got {self.linearity_max_dirs!r}.")
         return self
 
 
