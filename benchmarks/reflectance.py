@@ -259,7 +259,15 @@ def _isolated(fn, **kw):
     q = ctx.Queue()
     p = ctx.Process(target=fn, kwargs={**kw, "q": q})
     p.start()
-    out = q.get()
+    import queue
+    while True:  # a child that dies (killed, out of memory) must not hang the benchmark
+        try:
+            out = q.get(timeout=5)
+            break
+        except queue.Empty:
+            if not p.is_alive():
+                raise RuntimeError(f"the benchmark case {fn.__name__}({kw}) died with exit code "
+                                   f"{p.exitcode} before reporting (killed, or out of memory?)")
     p.join()
     return out
 
