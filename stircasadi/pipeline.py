@@ -118,9 +118,9 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     first = geo.onsets.get("r")
     first = None if first is None else 2.0 * np.asarray(first) if view.colocated else None
     checks = run_checks(view, fit, settings, first_paths=first)
-    checks.append(identifiability_check(view, geo.ambiguities))
     est = fit.estimate
     n_h = est.values["position"].shape[0] - M
+    checks.append(identifiability_check(view, geo.ambiguities, est.values["position"][:M], n_h))
     base = int(max(view.ids.max(), view.ill.max(), view.obs.max())) + 1
     ids = np.concatenate([view.ids, base + np.arange(n_h)])
     vis = np.concatenate([np.ones(M, bool), np.zeros(n_h, bool)])
