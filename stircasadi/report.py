@@ -1,6 +1,7 @@
 """One place for reports: the JSON encoder, the frame alignment, the truth matcher, the table.
 
-* ``jsonable`` / ``dumps``: NumPy to plain JSON (NaN and inf become null).
+* ``jsonable`` / ``dumps``: NumPy to plain JSON (NaN and inf become null); ``json_default``
+  the ``default=`` hook for records that keep NaN/inf (studies' cells, applications' files).
 * ``procrustes_matrix``: the orthogonal Q (rotation or reflection: distances cannot tell a scene
   from its mirror image) aligning an estimate in the source-origin frame to a truth about the
   source; identity in the capture's frame.
@@ -15,10 +16,11 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import PurePath
 
 import numpy as np
 
-__all__ = ["jsonable", "dumps", "procrustes_matrix", "alignment", "match", "compare", "table",
+__all__ = ["jsonable", "json_default", "dumps", "procrustes_matrix", "alignment", "match", "compare", "table",
            "vec", "position_rmse"]
 
 
@@ -38,6 +40,19 @@ def jsonable(x):
         v = float(x)
         return v if math.isfinite(v) else None
     return x
+
+
+def json_default(o):
+    """``json.dumps(default=...)`` for what JSON lacks: NumPy arrays and scalars as plain Python
+    (non-finite floats then stay NaN/Infinity, which Python's JSON reads back: for records where
+    an |err|/std of inf must stay inf), paths as strings. Anything else is an error."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.bool_, np.integer, np.floating)):
+        return o.item()
+    if isinstance(o, PurePath):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 def dumps(d: dict, indent: int = 1) -> str:

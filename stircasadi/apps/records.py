@@ -25,22 +25,15 @@ import numpy as np
 
 from ..errors import CaptureError, CodeError
 from ..io import atomic_path, atomic_write_text
+from ..report import json_default
 from ..timegrid import TimeGrid
 
 __all__ = ["write_result", "read_result", "write_json", "write_records", "read_records"]
 
 
-def _default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    return str(o)
-
-
 def write_json(path, obj) -> Path:
     """Write ``obj`` as indented JSON atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, default=_default))
+    return atomic_write_text(path, json.dumps(obj, indent=2, default=json_default))
 
 
 def write_result(path, app: str, datasets: dict, summary: dict, grid: TimeGrid | None = None) -> Path:
@@ -55,7 +48,7 @@ def write_result(path, app: str, datasets: dict, summary: dict, grid: TimeGrid |
             if grid is not None:
                 f.attrs["start_m"] = grid.start
                 f.attrs["bin_width_m"] = grid.bin_width
-            f.attrs["summary"] = json.dumps(summary, default=_default)
+            f.attrs["summary"] = json.dumps(summary, default=json_default)
             for k, v in datasets.items():
                 if v is not None:
                     f.create_dataset(k, data=np.asarray(v))

@@ -22,23 +22,12 @@ from pathlib import Path
 
 from ..errors import StudyError
 from ..io import atomic_write_text
+from ..report import json_default
 
-__all__ = ["cell_key", "CellCache", "ENGINE_VERSION", "dumps", "json_default"]
+__all__ = ["cell_key", "CellCache", "ENGINE_VERSION", "dumps"]
 
 #: bump when a record's meaning changes (new measures, other defaults)
 ENGINE_VERSION = 2
-
-
-def json_default(o):
-    """``json.dumps(default=...)`` for NumPy scalars and arrays. Non-finite floats are written as
-    ``NaN``/``Infinity`` (Python's JSON reads them back; an |err|/std of inf must stay inf)."""
-    import numpy as np
-
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.bool_, np.integer, np.floating)):
-        return o.item()
-    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 def dumps(o, **kw) -> str:
