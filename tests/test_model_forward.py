@@ -35,11 +35,16 @@ def test_symbolic_equals_numeric_forward(mod, kw):
     if len(h):  # symbolic (erf) kernels for the paths through hidden patches
         m.set_unknown("position", h, lower=-0.02, upper=0.02)
     m.setup()
-    y = m.simulate(m.x_of(_truth_values(sc)))
+    x = m.x_of(_truth_values(sc))
+    y = m.simulate(x)
     rel = np.abs(y - tr.stir).max() / np.abs(tr.stir).max()
     assert rel < 1e-9, rel
     # and a wrong parameter value does not match (the comparison can fail)
     assert np.abs(m.simulate() - tr.stir).max() / np.abs(tr.stir).max() > 1e-3
+    # the NumPy path sums (the probe a model set up without its CasADi graph uses) equal the
+    # symbolic output at the truth and away from it
+    for xx in (x, m.x0):
+        assert np.abs(m.simulate(xx, numeric=True) - m.simulate(xx)).max() <= 1e-12 * np.abs(tr.stir).max()
 
 
 def test_legs_excluded_and_plane_parameterisation_match():
@@ -76,6 +81,10 @@ def test_mirrors_and_extended_patches_equal_the_numeric_model():
     m = TransientModel.from_scene(sc, gr, se.irf, bounces=3).set_unknown("albedo", np.arange(16)).setup()
     y = m.simulate(m.x_of({"albedo": sc.albedos}))
     assert np.abs(y - tr.stir).max() / tr.stir.max() < 1e-12
+    probe = TransientModel.from_scene(sc, gr, se.irf, bounces=3).set_unknown("albedo", np.arange(16))
+    probe.setup(symbolic=False)      # paths only: NumPy sums, no graph
+    assert not hasattr(probe, "f_y")
+    assert np.abs(probe.simulate(probe.x_of({"albedo": sc.albedos})) - tr.stir).max() / tr.stir.max() < 1e-12
     # extended hidden patch vs its quadrature points as patches of the numeric model
     sc0, gr = hidden_corner.build_scene(), hidden_corner.build_grid()
     k = 3
@@ -93,6 +102,7 @@ def test_mirrors_and_extended_patches_equal_the_numeric_model():
     tr1 = simulate(sc1, gr, se, bounces=3)
     y = m.simulate(m.x_of({"albedo": sc0.albedos}))
     assert np.abs(y - tr1.stir).max() / tr1.stir.max() < 1e-12
+    assert np.abs(m.simulate(m.x_of({"albedo": sc0.albedos}), numeric=True) - tr1.stir).max() / tr1.stir.max() < 1e-12
     # and the disc differs from the point patch (the extent shows in the transient)
     tr0 = simulate(sc0, gr, se, bounces=3, per_bounce=True)
     assert np.abs(y - tr0.stir).max() > 0.01 * tr0.per_bounce[2].max()

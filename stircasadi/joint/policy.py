@@ -128,13 +128,14 @@ def _gain_start(view, X, pairs, q) -> float:
 
 def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
                bounces: int | None = None, fixed_visible: bool = False,
-               extended=None) -> ModelPlan:
+               extended=None, symbolic: bool = True) -> ModelPlan:
     """Declare the joint model for the capture ``view``, the visible start ``geo``
     (``VisibleStart``) and the hidden starts ``hidden``. ``fixed_visible``: every visible number
     stays at its start (the quick test of a hidden candidate); ``extended``: which hidden
     patches are discs whose area is an unknown — True/False for all, or a set of their indices
     in ``hidden`` (default ``settings.search.extended``). ``brdf``: "lambertian", "phong" (every
-    visible patch modified Phong) or a boolean mask of the glossy visible patches."""
+    visible patch modified Phong) or a boolean mask of the glossy visible patches. ``symbolic``:
+    False sets the model up without its CasADi graph (a probe: ``model.simulate`` only)."""
     extended = settings.search.extended if extended is None else extended
     ids = np.asarray(view.ids, int)
     M = len(ids)
@@ -266,7 +267,7 @@ def plan_model(view, geo, settings, hidden: list, brdf: str = "lambertian",
         if len(ext):
             model.set_extended(ext, rings=1, per_ring=6)
             model.set_unknown("area", ext, lower=1e-6, upper=0.09, scale=1e-3)
-    model.setup()
+    model.setup(symbolic=symbolic)
     given = {"position": np.concatenate([known_pos, np.zeros(Hn, bool)]),
              "normal": np.concatenate([given_n, np.zeros(Hn, bool)]),
              "area": given_area.copy()}

@@ -36,7 +36,7 @@ from ..brdf import Lambertian, Mirror, Phong
 from ..errors import ModelError
 from ..radiometry import facing_matrix, perpendicular
 from ..timegrid import TimeGrid
-from .output import OutputStructure, build_output, path_terms
+from .output import OutputStructure, build_output, numeric_stir, path_terms
 from .parameters import ParameterSet
 from .paths import enumerate_paths, general_triples, legs_between, windows
 from .energy import flux_column_sums
@@ -283,8 +283,10 @@ class TransientModel:
         return self
 
     # ------------------------------------------------------------------ setup
-    def setup(self) -> "TransientModel":
-        """Check the declaration, enumerate paths, build the CasADi graph and lock the model."""
+    def setup(self, symbolic: bool = True) -> "TransientModel":
+        """Check the declaration, enumerate paths, build the CasADi graph and lock the model.
+        ``symbolic=False``: paths and windows only, no graph; ``simulate`` then sums the paths
+        in NumPy (a probe model: no NLP can be built on it)."""
         self._check_open("setup")
         t0 = time.perf_counter()
         pr = self.params
@@ -349,12 +351,14 @@ class TransientModel:
         self.trace_lo, self.trace_hi, self.seg_start, self.support, self.support_trace = windows(
             self.paths, lambda g: path_terms(vq0, g.verts, g.via, self, f0)[1], reach[self.layout.patch],
             *self.irf.support(), self.grid, len(self.ill_ids) * len(self.obs_ids))
-        self.output: OutputStructure = build_output(self, self.vq_sym, vq0, fk_sym, f0)
-        self.y_sym = self.output.y
-        self.f_y = ca.Function("stir_model", [self.x], [self.y_sym], ["x"], ["y"])
         self._locked = True
-        self.info.n_paths = self.output.n_paths
-        self.info.n_variable_paths = self.output.n_variable_paths
+        self.info.n_paths = sum(len(g.verts) for g in self.paths)
+        self.symbolic = symbolic
+        if symbolic:
+            self.output: OutputStructure = build_output(self, self.vq_sym, vq0, fk_sym, f0)
+            self.y_sym = self.output.y
+            self.f_y = ca.Function("stir_model", [self.x], [self.y_sym], ["x"], ["y"])
+            self.info.n_variable_paths = self.output.n_variable_paths
         self.info.n_support = len(self.support)
         self.info.n_unknowns = self.n_x
         self.info.n_vertices = self.layout.n
@@ -465,13 +469,23 @@ class TransientModel:
         """Model STIR on the support bins at scaled ``x`` (default: x0)."""
         self._require_setup("evaluate()")
         x = self.x0 if x is None else np.asarray(x, float)
+        if not self.symbolic:
+            return self.simulate(x).reshape(-1)[self.support]
         return np.asarray(self.f_y(x)).ravel()
 
-    def simulate(self, x=None) -> np.ndarray:
-        """Full STIR (n_ill, n_obs, n_bins) at scaled ``x`` (default x0): zero off the support."""
-        out = np.zeros(len(self.ill_ids) * len(self.obs_ids) * self.grid.n_bins)
+    def simulate(self, x=None, numeric: bool = False) -> np.ndarray:
+        """Full STIR (n_ill, n_obs, n_bins) at scaled ``x`` (default x0): zero off the support.
+        ``numeric`` (always for a model set up with ``symbolic=False``): NumPy path sums."""
+        self._require_setup("simulate()")
+        x = self.x0 if x is None else np.asarray(x, float)
+        shape = (len(self.ill_ids), len(self.obs_ids), self.grid.n_bins)
+        if numeric or not self.symbolic:
+            n_p = self.params.n_x
+            fk = x[n_p:n_p + len(self.triples)] * self.fkij_scale if len(self.triples) else None
+            return numeric_stir(self, self._vq_num(x), fk).reshape(shape)
+        out = np.zeros(int(np.prod(shape)))
         out[self.support] = self.evaluate(x)
-        return out.reshape(len(self.ill_ids), len(self.obs_ids), self.grid.n_bins)
+        return out.reshape(shape)
 
     def data_on_support(self, stir) -> np.ndarray:
         """The measured STIR restricted to the model's support bins."""

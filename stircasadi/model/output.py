@@ -29,7 +29,7 @@ from ..brdf import Lambertian, Phong
 from ..irf import bin_integral
 from ..radiometry import direct_leg, mirror_leg, source_irradiance, vdot, vnorm, vscale, vsub
 
-__all__ = ["OutputStructure", "path_terms", "build_output"]
+__all__ = ["OutputStructure", "path_terms", "build_output", "numeric_stir"]
 
 
 @dataclass
@@ -187,3 +187,29 @@ def build_output(model, vq_sym: dict, vq_num: dict, fkij_sym=None, fkij_num=None
                            fixed_trace=fixed_trace, variable_traces=var_tr, n_paths=n_paths,
                            n_variable_paths=n_var)
 
+
+
+def numeric_stir(model, vq_num: dict, fkij_num=None, max_entries: int = 2_000_000) -> np.ndarray:
+    """The model STIR at one numeric point, flat (n_traces * n_bins), by NumPy path sums: the
+    same ``path_terms`` and ``irf.bin_integral`` as ``build_output`` on the same windows, with no
+    CasADi graph (a probe, e.g. whether the next bounce order shows above the noise, costs the
+    paths' arithmetic only). Paths are deposited in chunks of at most ``max_entries`` bins."""
+    grid, irf = model.grid, model.irf
+    w, t0, nb = grid.bin_width, grid.start, grid.n_bins
+    out = np.zeros(len(model.ill_ids) * len(model.obs_ids) * nb)
+    for g in model.paths:
+        if not len(g.verts):
+            continue
+        amp, tau = path_terms(vq_num, g.verts, g.via, model, fkij_num)
+        amp = np.broadcast_to(np.asarray(amp, float).ravel(), (len(g.verts),))
+        span = np.maximum(g.k1 - g.k0, 0)
+        step = max(1, int(max_entries // max(int(span.max()), 1)))
+        for s0 in range(0, len(g.verts), step):
+            sl = slice(s0, s0 + step)
+            k0, k1 = g.k0[sl], g.k1[sl]
+            kk = k0[:, None] + np.arange(int(span[sl].max()))[None, :]
+            valid = (kk >= 0) & (kk < nb) & (kk < k1[:, None])
+            h = bin_integral(irf, t0 + kk * w - tau[sl][:, None], w) * amp[sl][:, None]
+            idx = (g.trace[sl][:, None] * nb + kk)[valid]
+            out += np.bincount(idx, weights=h[valid], minlength=len(out))
+    return out
