@@ -187,6 +187,22 @@ def _screen(nlp, max_iter: int = 25):
     return sol
 
 
+def _candidate_fit(nlp):
+    """The refit of a hidden candidate with the known patches held: a few unknowns against every
+    bin, so Gauss-Newton on the sparse Jacobian first (no exact Hessian of the whole STIR, no KKT
+    system); IPOPT (``_solve``) from where it stopped when it does not converge in 30 steps.
+    Poisson and PEM costs, and ``solver='lm'``, go to ``_solve`` directly."""
+    if nlp.poisson or nlp.pem or nlp.settings.solver == "lm":
+        return _solve(nlp)
+    from .lm import solve_sparse_lm
+
+    with _raising(nlp.settings.ipopt, False):
+        sol = solve_sparse_lm(nlp, max_iter=30)
+    if sol.success:
+        return sol
+    return _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+
+
 def _glossy_patches(view, start, settings, make_nlp, stir, notes) -> np.ndarray:
     """Which visible patches the data show to be glossy: from an all-Lambertian fit, each patch in
     turn gets modified-Phong unknowns (specular, exponent) and keeps them when the whitened chi2
@@ -280,15 +296,18 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
             notes.append(f"bounce order held at {K}: the next order's ~{plan.model.info.n_paths * deg:.2g} "
                          "paths exceed the model's budget (its light, if above the noise, shows in chi2)")
             break
-        plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K + 1)
-        if plan_k.model.n_x != plan.model.n_x:
+        # the next order's paths summed in NumPy at the fit (no CasADi graph unless it is kept)
+        probe = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K + 1, symbolic=False)
+        if probe.model.n_x != plan.model.n_x:
             break
-        extra = plan_k.model.simulate(sol.x[:plan.model.n_x]) - plan.model.simulate(sol.x[:plan.model.n_x])
+        xk = sol.x[:plan.model.n_x]
+        extra = probe.model.simulate(xk) - plan.model.simulate(xk, numeric=True)
         big = float(np.max(np.abs(nlp.whiten(extra, 0.0 * extra))))
         log.info(f"bounce {K + 1}: its paths reach {big:.3g} noise std at the fit")
         if big <= 3.0:
             break
         K += 1
+        plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K)
         plan, nlp = plan_k, make_nlp(plan_k)
         sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=False)
     want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
@@ -312,15 +331,19 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     plane = flatland_plane(view, start.positions) if view.priors.get("flatland") else None
     max_h = settings.search.max_hidden if n_hidden is None else n_hidden
     tmpl = view.template
+    tried: list = []   # every point proposed so far: a point whose patch the refit moved away
+    # from (its return still unexplained there) is not proposed again
     while want_search and len(hidden) < max_h:
         R = cur_nlp.whiten(stir, cur_nlp.model.simulate(cur_x[:cur_nlp.model.n_x]))
+        ex = [h.position for h in hidden] + tried
         cand = search(R, view, vis_start.positions, vis_start.normals,
                       np.clip(vis_start.albedo, 0.05, 1.0), tmpl,
                       step=settings.search.grid_step_irf * tmpl.width,
                       max_traces=settings.search.max_traces,
-                      exclude=np.array([h.position for h in hidden]) if hidden else None, plane=plane)
+                      exclude=np.array(ex) if ex else None, plane=plane)
         if cand is None:
             break
+        tried.append(np.asarray(cand.position, float))
         if n_hidden is None and not cand.significant():
             log.info(f"search: the strongest residual return (T = {cand.statistic:.3g} over "
                      f"{cand.n_tested} points) is what noise reaches: no further hidden patch")
@@ -330,7 +353,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
             planq = plan_model(view, vis_start, settings, hidden + [hs], brdf=brdf, fixed_visible=True,
                                extended=False, bounces=K)
             nlpq = make_nlp(planq)
-            solq = _solve(nlpq)
+            solq = _candidate_fit(nlpq)
         except SolverError as exc:
             notes.append(f"a hidden candidate at {np.round(cand.position, 3).tolist()} could not be fitted "
                          f"({exc.status}); the search stopped there")
