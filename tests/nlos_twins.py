@@ -150,3 +150,69 @@ def _capture(tr, pairs, grid, lxyz, dxyz, noise_rel, seed, fwhm, same_ids, ids=N
                    illuminated_xyz=lxyz, observed_xyz=dxyz, illuminated_ids=ids,
                    observed_ids=ids if same_ids else ids + n, irf=irf,
                    noise={"model": "gaussian", "sigma": sigma} if sigma > 0 else {"model": "none"})
+
+
+#: the response measured on the Stanford 40 cm charts' direct return (``surface.direct``, 16 ps):
+#: a Gaussian core and two slow tails, mode at t = 0
+STANFORD_RESPONSE = ("gaussian", 0.0046, 0.0, ((0.0265, 0.405), (0.1003, 0.393)))
+
+
+def stanford_twin(path, depth=0.400, side=0.25, tilt_deg=0.0, brdf="retroreflective", n=64,
+                  half=0.2, n_bins=1400, direct=43000.0, third=2300.0, bg=0.4, seed=0,
+                  response=STANFORD_RESPONSE, h_q=0.0025, sub=4):
+    """A rectified confocal scan in the Stanford release's own .mat layout (``rect_data`` counts
+    at 4 ps, ``width``), rendered independently of the surface fit by quadrature: n x n scan
+    points over [-half, half]^2 of the wall z = 0; a square of side ``side`` at ``depth`` (tilted
+    by ``tilt_deg`` about y), sampled every ``h_q`` m; each sample's confocal return (amplitude
+    cos_L cos_X / d^2 dA for a retroreflector, its square for a Lambertian surface; delay 2 d)
+    split linearly between the two nearest centres of sub-bins of 4 ps / ``sub`` (exact mean),
+    convolved with the response's sub-bin integrals (mode at the path length); the wall's own
+    return is the response at t = 0 (bins before t = 0 cut, as in the release) times ``direct``
+    counts; ``third`` counts per trace under the square; a constant ``bg``; Poisson noise.
+    Returns the noise-free rate (n*n, n_bins)."""
+    from scipy.io import savemat
+    from scipy.signal import fftconvolve
+
+    from stircasadi.nlos.surface.direct import response_cdf
+    from stircasadi.nlos.surface.response import Response
+
+    resp = Response(*response)
+    w = 4e-12 * 299792458.0
+    h = w / sub
+    nf = n_bins * sub
+    m0 = resp.mode_offset()
+    pad = int(8 * resp.sigma / h) + 4
+    k = np.arange(-pad, nf)
+    K = response_cdf(resp, (k + 0.5) * h + m0) - response_cdf(resp, (k - 0.5) * h + m0)
+    lin = np.linspace(-half, half, n)
+    yy, xx = np.meshgrid(lin, lin, indexing="ij")
+    P = np.stack([xx.ravel(), yy.ravel(), np.zeros(n * n)], 1)
+    g = np.arange(-side / 2 + h_q / 2, side / 2, h_q)
+    gy, gx = np.meshgrid(g, g, indexing="ij")
+    t = np.tan(np.radians(tilt_deg))
+    X = np.stack([gx.ravel(), gy.ravel(), depth + t * gx.ravel()], 1)
+    nX = np.array([t, 0.0, -1.0]) / np.hypot(1.0, t)
+    dA = h_q * h_q * np.hypot(1.0, t)
+    lam = np.zeros((n * n, n_bins))
+    for p0 in range(0, n * n, 128):
+        v = X[None] - P[p0:p0 + 128, None]
+        d = np.linalg.norm(v, axis=-1)
+        A = (v[..., 2] / d) * (-(v @ nX) / d) / d ** 2 * dA
+        if brdf != "retroreflective":
+            A = A * (v[..., 2] / d) * (-(v @ nX) / d) / d ** 2
+        u = 2 * d / h - 0.5                        # in units of sub-bin centres
+        lo = np.floor(u).astype(np.int64)
+        a = 1.0 - (u - lo)
+        rows = np.repeat(np.arange(v.shape[0]) * nf, X.shape[0]).reshape(lo.shape)
+        hist = (np.bincount((rows + np.clip(lo, 0, nf - 1)).ravel(), (A * a).ravel(), v.shape[0] * nf)
+                + np.bincount((rows + np.clip(lo + 1, 0, nf - 1)).ravel(), (A * (1 - a)).ravel(),
+                              v.shape[0] * nf)).reshape(-1, nf)
+        fine = fftconvolve(hist, K[None], axes=1)[:, pad:pad + nf]
+        lam[p0:p0 + 128] = fine.reshape(-1, n_bins, sub).sum(axis=2)
+    s = lam.sum(axis=1)
+    lam *= third / np.median(s[s > 0.3 * s.max()])
+    j = np.arange(nf + 1)
+    lam += direct * np.diff(response_cdf(resp, j * h + m0)).reshape(n_bins, sub).sum(axis=1)[None] + bg
+    y = np.random.default_rng(seed).poisson(lam)
+    savemat(path, {"rect_data": y.reshape(n, n, n_bins).astype(np.uint16), "width": np.array([[half]])})
+    return lam

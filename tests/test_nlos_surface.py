@@ -85,6 +85,38 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
     assert np.allclose(lin["m"], model.predict(st), atol=1e-14)
 
 
+def test_pair_windows_longer_than_the_record_are_cut_exactly():
+    """A steep node (a depth jump of 0.8 m between neighbours: cell spreads of ~0.5 m of path)
+    asks for response windows longer than a short record; the model cuts them to the record
+    (this used to allocate (pairs, 17354 bins) on the 65 cm charts and exhaust memory). The
+    traces equal the first bins of the same model on a record long enough to need no cut."""
+    from stircasadi.nlos.relay import Relay
+    from stircasadi.nlos.surface.model import SurfaceState
+    from stircasadi.nlos.surface.response import Response
+    rng = np.random.default_rng(2)
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.1, 0.1, 3), frame)
+    L = np.c_[rng.uniform(-0.2, 0.2, (5, 2)), np.zeros(5)]
+    n = np.tile([0, 0, 1.0], (5, 1))
+    z = np.full(grid.n, 0.4)
+    z[5] = 1.2
+    st = SurfaceState(z, rng.uniform(0.3, 1, grid.n), 0.006, 0.0, (0.4,), 0.01)
+    out = []
+    for T in (150, 3000):
+        rl = Relay(np.zeros((5, T)), TimeGrid(0.6, 0.004, T), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+        model = SurfaceModel(grid, rl, Response("gaussian", 0.006, 0.0, ((0.03, 0.4),)), "lambertian")
+        G = model._geometry(0, 5, model._local(z), False)[0]
+        s = np.sqrt(0.006 ** 2 + G[..., 2])
+        n_win = model._windows(st, model.response(st), G[..., 1], G[..., 2], False, False)[1]
+        assert n_win <= T + 2
+        out.append((model.predict(st), model, float(s.max())))
+    (short, m_short, s_max), (long, _, _) = out
+    assert 5.5 * s_max / 0.004 > 150                  # the cut is exercised
+    assert np.allclose(short, long[:, :150], rtol=1e-12, atol=1e-15)
+    lin = m_short.linearise(st, short, np.ones_like(short), dtype=np.float64)
+    assert np.allclose(lin["m"], short, atol=1e-14)
+
+
 def test_response_shapes_against_convolutions_and_the_project_irf():
     """The emg core equals a numerical Gaussian * exponential convolution, its mode is where
     the density peaks, the slow-tail filter keeps the mass and its adjoint is its transpose, and

@@ -107,11 +107,25 @@ def test_stanford_40cm_charts_surface_fit(name):
     the response and background decay measured on the direct return, Lambertian), against the
     chart's stated distance and f-k's depth map (independent method).
 
-    Measured (resolution / dot): plane depth on the scan axis 0.4079 / 0.4101 m, tilt 4.3 / 6.1
-    deg, chi2/dof 4.2 / 3.1; f-k's plane through its bright columns 0.4041 / 0.4048 m, tilt 2.1 /
+    Measured (resolution / dot; 2026-12-01 on nlos3, and the same at df0b597): plane depth on the
+    scan axis 0.4078 / 0.4101 m, tilt 4.6 / 6.1 deg, chi2/dof 4.09 / 3.09, 48 / 31 mask nodes; f-k's plane through its bright columns 0.4041 / 0.4048 m, tilt 2.1 /
     2.5 deg; the response measured on the direct return: FWHM 17.0 mm of path (57 ps; the paper
     states ~60 ps), 80 % of its counts in tails of 2.6 and 10 cm. A Gaussian response, a constant
-    background and the volume's 6-MAD mask as extent gave 0.447 m and 25 deg."""
+    background and the volume's 6-MAD mask as extent gave 0.447 m and 25 deg.
+
+    Why not 0.40 m (the issue's goal, within 2 mm): the charts' own rising edges, read without
+    any radiometric, background or response-shape model (``nlos.onset``: the steepest rise of
+    2 x 2 blocks at 4 ps), lie at 0.4068 / 0.4061 m, and the same reading returns 0.4000 m on a
+    twin of the release at 0.400 m (``test_nlos_stanford_twin.py``, where the surface fit returns
+    0.4005 m). The direct peak sits 0.76 / 0.61 mm of path before t = 0 (twin: 0.46 mm), so
+    t = 0 is the wall's peak to a fraction of a bin, and the bin-edge convention is right. On the
+    same release's 65 cm charts (not in ../shared/data; read from the third-party re-upload,
+    commit 3613ea5, outside the repository) the rising edges lie at 0.6523 / 0.6483 m: a
+    constant timing offset between the wall's return and the hidden return would shift both
+    distances alike, so the +6 to +7 mm at 40 cm is where the charts are under the files' own
+    t = 0 (their stated distance is nominal), not a convention of the fit. The fit agrees with
+    the rising edges within 1.0 / 4.0 mm; asserting 0.40 +- 2 mm would need an offset the data
+    do not support."""
     f = STANFORD / name
     if not f.exists():
         pytest.skip(f"data file absent: {f}")
@@ -131,6 +145,10 @@ def test_stanford_40cm_charts_surface_fit(name):
     assert s.mask.sum() >= 20 and s.chi2_dof < 6
     assert 0.400 <= z0 < 0.413 and abs(z0 - z_fk) < 0.008
     assert tilt < 8.0 and tilt_fk < 4.0
+    from stircasadi.nlos.onset import onset_depths
+    edge = onset_depths(from_capture(cap), 0.72, 1.0)
+    assert 0.405 < edge.median < 0.408 and abs(edge.direct_peak) < cap.grid.bin_width
+    assert abs(z0 - edge.median) < 0.005
 
 
 def test_plane_fit_closed_form_with_outliers():

@@ -47,11 +47,17 @@ def _emg_cdf(x, s, tau):
 
 
 def response_cdf(resp: Response, x) -> np.ndarray:
-    """The whole response's CDF at offsets ``x`` from the Gaussian centre (emg core)."""
+    """The whole response's CDF at offsets ``x`` from the Gaussian centre (Gaussian or emg core)."""
+    from scipy.special import ndtr
     s, t1 = resp.sigma, resp.tail
-    out = (1.0 - sum(b for _, b in resp.slow)) * _emg_cdf(x, s, t1)
+    x = np.asarray(x, float)
+    core = ndtr(x / s) if resp.kind == "gaussian" else _emg_cdf(x, s, t1)
+    out = (1.0 - sum(b for _, b in resp.slow)) * core
     for tau, beta in resp.slow:
-        out = out + beta * (t1 * _emg_cdf(x, s, t1) - tau * _emg_cdf(x, s, tau)) / (t1 - tau)
+        if resp.kind == "gaussian":     # a Gaussian core with an exponential tail: an emg
+            out = out + beta * _emg_cdf(x, s, tau)
+        else:
+            out = out + beta * (t1 * _emg_cdf(x, s, t1) - tau * _emg_cdf(x, s, tau)) / (t1 - tau)
     return out
 
 

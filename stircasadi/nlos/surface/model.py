@@ -248,6 +248,12 @@ class SurfaceModel:
         tmin, tmax = tau.min(axis=1), tau.max(axis=1)
         k0 = np.floor((tmin + lo - self.t_start) / w).astype(np.int64)
         n_win = int(math.ceil((float(np.max(tmax - tmin, initial=0.0)) + hi - lo) / w)) + 2
+        if n_win > self.T:
+            # one pair's wide spread (a steep node's cell, far off its start) must not make every
+            # window longer than the record: windows starting at max(k0, 0) with T bins hold
+            # every bin inside the record that the longer ones did (the rest is masked anyway)
+            k0 = np.maximum(k0, 0)
+            n_win = self.T
         j = np.arange(n_win + 1)
         x = (self.t_start + (k0[:, None, None] + j[None, None, :]) * w - tau[:, :, None]
              + resp.mode_offset())
