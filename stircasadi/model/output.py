@@ -188,7 +188,6 @@ def build_output(model, vq_sym: dict, vq_num: dict, fkij_sym=None, fkij_num=None
                            n_variable_paths=n_var)
 
 
-
 def numeric_stir(model, vq_num: dict, fkij_num=None, max_entries: int = 2_000_000) -> np.ndarray:
     """The model STIR at one numeric point, flat (n_traces * n_bins), by NumPy path sums: the
     same ``path_terms`` and ``irf.bin_integral`` as ``build_output`` on the same windows, with no
@@ -211,5 +210,8 @@ def numeric_stir(model, vq_num: dict, fkij_num=None, max_entries: int = 2_000_00
             valid = (kk >= 0) & (kk < nb) & (kk < k1[:, None])
             h = bin_integral(irf, t0 + kk * w - tau[sl][:, None], w) * amp[sl][:, None]
             idx = (g.trace[sl][:, None] * nb + kk)[valid]
-            out += np.bincount(idx, weights=h[valid], minlength=len(out))
+            if len(idx):  # summed over the bins the chunk touches, not the whole STIR
+                lo = int(idx.min())
+                part = np.bincount(idx - lo, weights=h[valid])
+                out[lo:lo + len(part)] += part
     return out
