@@ -31,9 +31,18 @@ from ..timegrid import TimeGrid
 __all__ = ["write_result", "read_result", "write_json", "write_records", "read_records"]
 
 
+def _default(o):
+    """``report.json_default``, and any other object as its text (what these files always wrote
+    for the settings and metadata objects an application's summary may hold)."""
+    try:
+        return json_default(o)
+    except TypeError:
+        return str(o)
+
+
 def write_json(path, obj) -> Path:
     """Write ``obj`` as indented JSON atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, default=json_default))
+    return atomic_write_text(path, json.dumps(obj, indent=2, default=_default))
 
 
 def write_result(path, app: str, datasets: dict, summary: dict, grid: TimeGrid | None = None) -> Path:
@@ -48,7 +57,7 @@ def write_result(path, app: str, datasets: dict, summary: dict, grid: TimeGrid |
             if grid is not None:
                 f.attrs["start_m"] = grid.start
                 f.attrs["bin_width_m"] = grid.bin_width
-            f.attrs["summary"] = json.dumps(summary, default=json_default)
+            f.attrs["summary"] = json.dumps(summary, default=_default)
             for k, v in datasets.items():
                 if v is not None:
                     f.create_dataset(k, data=np.asarray(v))
