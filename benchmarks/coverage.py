@@ -1,6 +1,7 @@
 """Coverage study: does every reported std cover its error on scenes no one tuned the estimator on?
 
     python benchmarks/coverage.py [N_SCENES] [FIRST_SEED] [--timeout=S] [--workers=W] [--seeds=3,7,...]
+                                  [--time-limit=S]
 
 Draws scenes from the seeded generator (``stircasadi.testing.scenes.generate``), simulates each
 through its sensor, estimates it BLIND (truth stripped) with ``stircasadi.pipeline.estimate_capture``
@@ -18,6 +19,11 @@ every scene, each record with its estimate.json so the scoring can be recomputed
 * hidden patches: for every true hidden patch of >= 2 cm whose third-bounce peak is >= 20 noise
   std, whether it was placed within 1 cm or the result was flagged;
 * verdicts, wall times and failures (exceptions are recorded, never fatal).
+
+``--time-limit=S`` gives every estimate that wall-clock limit (``estimate_capture(time_limit=)``:
+a scene it cuts ends UNRELIABLE with the ``time-limit`` check failed, counted as
+``n_time_limited``); ``--timeout`` still kills a scene that overruns it (checks and error bars of
+a large model come after the limit).
 """
 from __future__ import annotations
 
@@ -47,7 +53,7 @@ def _hidden_visibility(g, cap):
         out[int(h)] = float(tr.per_bounce[2].max() / g.sigma)
     return out
 
-def one(seed: int) -> dict:
+def one(seed: int, time_limit: float | None = None) -> dict:
     from stircasadi.pipeline import estimate_capture
     from stircasadi.progress import set_verbosity
     from stircasadi.report import compare, vec, alignment
@@ -63,7 +69,7 @@ def one(seed: int) -> dict:
         truth = cap.truth
         cap.truth = None
         t0 = time.perf_counter()
-        res = estimate_capture(cap)
+        res = estimate_capture(cap, time_limit=time_limit)
         rec["wall_s"] = time.perf_counter() - t0
         d = res.to_json_dict()
         rec["verdict"] = d["verdict"]
@@ -118,18 +124,20 @@ def summarise(recs: list[dict]) -> dict:
     return {"n_scenes": len(recs), "n_ok": len(ok), "per_quantity": per_q,
             "n_unreliable": sum(1 for r in recs if r.get("verdict") == "UNRELIABLE"),
             "n_error": sum(1 for r in recs if "error" in r),
+            "n_time_limited": sum(1 for r in recs if any(str(x).startswith("time-limit")
+                                                        for x in r.get("reasons", []))),
             "silent_wrong_seeds": silent, "n_numbers": int(len(zs) + inf_z), "n_infinite_z": inf_z,
             "within_1sigma": float(np.mean(zs <= 1)) if len(zs) else None,
             "within_2sigma": float(np.mean(zs <= 2)) if len(zs) else None,
             "hidden_visible": len(hid), "hidden_placed_or_flagged": hid_ok,
             "median_wall_s": float(np.median([r["wall_s"] for r in recs if "wall_s" in r])) if recs else None}
 
-def _child(seed, conn):
-    conn.send(one(seed))
+def _child(seed, conn, time_limit=None):
+    conn.send(one(seed, time_limit))
     conn.close()
 
 
-def _run_all(seeds, workers, timeout):
+def _run_all(seeds, workers, timeout, time_limit=None):
     """Yield (seed, record) in seed order, each scene in its own process, at most ``workers`` at
     a time; a scene past ``timeout`` seconds is terminated (its record says so) so it cannot hold
     a worker and starve the scenes after it."""
@@ -140,7 +148,7 @@ def _run_all(seeds, workers, timeout):
         while pending and len(running) < workers:
             s = pending.pop(0)
             a, b = ctx.Pipe(duplex=False)
-            p = ctx.Process(target=_child, args=(s, b), daemon=True)
+            p = ctx.Process(target=_child, args=(s, b, time_limit), daemon=True)
             p.start()
             running[s] = (p, a, time.perf_counter())
         for s, (p, a, t) in list(running.items()):
@@ -171,6 +179,8 @@ def main(argv):
     first = int(args[1]) if len(args) > 1 else 0
     workers = int(next((a.split("=")[1] for a in argv if a.startswith("--workers=")), 1))
     timeout = float(next((a.split("=")[1] for a in argv if a.startswith("--timeout=")), 600))
+    tl = next((a.split("=")[1] for a in argv if a.startswith("--time-limit=")), None)
+    time_limit = float(tl) if tl not in (None, "0", "none") else None
     seeds = list(range(first, first + n))
     recs = []
     t0 = time.perf_counter()
@@ -178,7 +188,7 @@ def main(argv):
     if seeds_arg:  # an explicit list (e.g. re-running the scenes a change affects)
         seeds = [int(x) for x in seeds_arg.split(",") if x.strip()]
         first, n = seeds[0], 0
-    for s, r in _run_all(seeds, workers, timeout):
+    for s, r in _run_all(seeds, workers, timeout, time_limit):
         recs.append(r)
         zmax = max([z for _, z in r.get("z", []) if z is not None] + [0])
         print(f"seed {s:4d} {r.get('params', {}).get('kind', '?'):6s} "

@@ -64,7 +64,7 @@ def _priors(areas, flatland) -> dict:
 
 def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian", areas=None,
                      flatland: bool | None = None, settings=None, method: str | None = None,
-                     out_dir=None) -> EstimateResult:
+                     out_dir=None, time_limit: float | None = None) -> EstimateResult:
     """Estimate geometry, reflectance and hidden patches from ``capture`` (see module docstring).
 
     hidden : number of hidden patches to place (None: as many as the data ask for).
@@ -74,6 +74,9 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     method : relay-wall scans only: ``"relay"`` (default: the first hidden point and plane from
         onsets), or ``"lct"``, ``"fk"``, ``"bp"``, ``"surface"`` (``stircasadi.nlos``: volumes and
         a fitted hidden surface, written to ``out_dir`` with their maps, mesh and pictures).
+    time_limit : wall-clock seconds for the whole estimate (overrides ``settings.time_limit``):
+        where it runs out the stages left are skipped and the result is the last converged fit,
+        flagged UNRELIABLE by the ``time-limit`` check (``stircasadi.joint.budget``).
     """
     from .joint.settings import EstimateSettings
 
@@ -81,7 +84,13 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
         raise ModelError(f"brdf must be 'lambertian' or 'phong'; got {brdf!r}.")
     if hidden is not None and (not isinstance(hidden, (int, np.integer)) or hidden < 0):
         raise ModelError(f"hidden must be None or an integer >= 0; got {hidden!r}.")
-    settings = (settings or EstimateSettings()).validate()
+    settings = settings or EstimateSettings()
+    if time_limit is not None:
+        import copy
+
+        settings = copy.copy(settings)
+        settings.time_limit = time_limit
+    settings = settings.validate()
     t0 = time.perf_counter()
     view = CaptureView.of(capture, _priors(areas, flatland))
     if capture.stir is None or not capture.legs_included:
@@ -91,6 +100,7 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
                          "a full STIR with its legs is estimated by the joint fit (method=None).")
     from .geometry import estimate_geometry
     from .joint.checks import identifiability_check, run_checks
+    from .joint.budget import Budget
     from .joint.fit import fit_joint
     from .joint.policy import VisibleStart
     from .joint.result import patch_records
@@ -113,7 +123,8 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     n0, _ = initial_normals(X, pairs, cam, labels=labels)
     start = VisibleStart(X, ps, n0, pairs=pairs, flat_labels=labels)
     t1 = time.perf_counter()
-    fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf)
+    fit = fit_joint(view, start, settings, n_hidden=hidden, brdf=brdf,
+                    budget=Budget(settings.time_limit, start=t0))
     t_fit = time.perf_counter() - t1
     first = geo.onsets.get("r")
     first = None if first is None else 2.0 * np.asarray(first) if view.colocated else None
@@ -151,7 +162,8 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
                              "iterations": est.iterations, "wall_time_s": t_fit,
                              "chi2_dof": est.chi2_dof, "std_inflation": est.inflation,
                              "flags": est.flags, "search": fit.history, **est.extra.get("model", {})},
-                   "geometry_total": {"wall_time_s": t_geo}},
+                   "geometry_total": {"wall_time_s": t_geo},
+                   "time_limit": fit.budget.to_dict() if fit.budget is not None else None},
     }
     from .report import jsonable
 

@@ -114,7 +114,8 @@ def cmd_estimate(args) -> int:
              + (f"STIR {' x '.join(map(str, cap.stir.shape))}" if cap.stir is not None
                 else f"{len(cap.traces)} paired traces"))
     res = estimate_capture(cap, hidden=args.hidden, brdf=args.brdf, areas=args.areas,
-                           flatland=True if args.flatland else None, method=args.method, out_dir=maps)
+                           flatland=True if args.flatland else None, method=args.method, out_dir=maps,
+                           time_limit=args.time_limit)
     d = res.to_json_dict()
     atomic_write_text(out, dumps(d))
     if maps is not None:
@@ -178,6 +179,10 @@ def add_parsers(sub) -> list:
     e.add_argument("--maps", type=Path, default=None,
                    help="folder for the volumes, maps, mesh and pictures of --method lct|fk|bp|surface "
                         "(default: OUT_nlos beside the estimate)")
+    e.add_argument("--time-limit", type=A.time_limit, default=A.TIME_LIMIT_DEFAULT, metavar="SECONDS",
+                   help="wall-clock limit of the estimate: where it runs out, the stages left are skipped "
+                        "and the result is the last converged fit, flagged UNRELIABLE (check time-limit); "
+                        "0: no limit")
     e.add_argument("--flatland", action="store_true",
                    help="declare that every patch lies in the plane of the source and the visible "
                         "patches (as in the paper's Fig. 12)")

@@ -12,6 +12,7 @@ its truth group. The folder and every file are checked before the simulation sta
 """
 from __future__ import annotations
 
+import argparse
 import sys
 import textwrap
 import time
@@ -117,7 +118,10 @@ def cmd_run(args) -> int:
     try:
         from ..pipeline import estimate_capture
 
-        res = estimate_capture(cap, brdf=opts.get("brdf", "lambertian"), hidden=opts.get("hidden"))
+        limit = getattr(args, "time_limit", "default")   # absent: not given on the command line
+        limit = opts.get("time_limit", A.TIME_LIMIT_DEFAULT) if limit == "default" else limit
+        res = estimate_capture(cap, brdf=opts.get("brdf", "lambertian"), hidden=opts.get("hidden"),
+                               time_limit=limit)
     except StircasadiError as exc:
         timings["estimate"] = time.perf_counter() - t
         report.update({"timings_s": timings, "files": files, "error": str(exc)})
@@ -180,5 +184,9 @@ def add_parsers(sub) -> list:
     r.add_argument("--seed", type=A.seed, default=0, help=f"noise seed, 0 to {A.SEED_MAX}")
     r.add_argument("--renderer", choices=["auto", "pyvista", "matplotlib"], default="auto",
                    help="3-D renderer of scene.png: pyvista when installed, else matplotlib")
+    r.add_argument("--time-limit", type=A.time_limit, default=argparse.SUPPRESS, metavar="SECONDS",
+                   help="wall-clock limit of the estimate (default: the problem's ESTIMATE['time_limit'], "
+                        f"else {A.TIME_LIMIT_DEFAULT:g} s); where it runs out the result is the last "
+                        "converged fit, flagged UNRELIABLE; 0: no limit")
     r.set_defaults(func=cmd_run)
     return [r]

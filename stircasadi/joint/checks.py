@@ -20,6 +20,8 @@ estimate UNRELIABLE (``success`` false, non-zero exit). The checks:
   traces (i, j) and (j, i) must agree within their noise: a model-free test of the data and of
   the id bookkeeping.
 * ``hidden-placed``: every hidden patch the data asked for has an identified position.
+* ``time-limit``: the estimate's time limit (``EstimateSettings.time_limit``) did not cut any
+  stage short (present only when it did).
 * ``plausibility``: every first-bounce path is positive and the scene fits in ``max_extent_m``;
   the impulse response is between 0.1 mm and 3 m of path (10 ns) wide (a bin width given in the
   wrong unit shows here).
@@ -113,8 +115,16 @@ def run_checks(view, fit, settings, first_paths=None) -> list[Check]:
                      f"whitened residual chi2/dof = {red:.4g} over {est.dof} degrees of freedom "
                      f"(noise sigma {nlp.sigma:.3g}, {nlp.sigma_source})"
                      + ("" if red <= us.chi2_max else ": the model does not explain the data")))
-    lin = _linearity(nlp, sol.x, est.extra.get("cov_x"), est.extra.get("null_x"), cs.linearity_k,
-                     cs.linearity_max_dirs)
+    budget = getattr(fit, "budget", None)
+    cut = budget is not None and bool(budget.stopped)
+    if cut:
+        out.append(Check("time-limit", False, budget.elapsed(), budget.limit,
+                         f"the time limit of {budget.limit:g} s ran out in: {', '.join(budget.stopped)}; "
+                         "the estimate is the last fit that converged with every unknown free, not the "
+                         "full estimate (allow more time: --time-limit SECONDS, 0 for none)"))
+    # the linearity probe is skipped for a result the limit already marks incomplete
+    lin = None if cut else _linearity(nlp, sol.x, est.extra.get("cov_x"), est.extra.get("null_x"),
+                                      cs.linearity_k, cs.linearity_max_dirs)
     if lin is not None:
         out.append(lin)
     # per-trace whitened chi2 on the modelled bins

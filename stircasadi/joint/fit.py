@@ -24,6 +24,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..errors import SolverError
 from ..progress import get_logger
+from .budget import Budget
 from .lm import solve_lm
 from .nlp import JointNLP
 from .policy import HiddenStart, VisibleStart, plan_model
@@ -46,6 +47,8 @@ class FitResult:
     notes: list = field(default_factory=list)
     sigma: float = 0.0
     sigma_source: str = ""
+    budget: object = None
+    """The ``budget.Budget`` of the fit; ``budget.stopped`` names the stages its limit cut."""
 
 
 def noise_level(view, support=None) -> tuple[float, str, list]:
@@ -118,13 +121,15 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
     raise_ = st.raise_on_failure
     with _raising(st, False):
         sol = solve_nlp(nlp, warm=warm, x0=x0)
-        if sol.success:
-            return sol
+        if sol.success or _out_of_time(nlp):
+            return sol   # a solve the time limit stopped is returned as it is (not a success)
         rescued = _rescue(nlp, sol)
     if rescued is not None:
         return rescued
-    frozen = degenerate(nlp, sol.x)
+    frozen = degenerate(nlp, sol.x) if not _out_of_time(nlp) else []
     if not frozen:
+        if _out_of_time(nlp):
+            return sol
         if raise_ and strict:
             raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
                               f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
@@ -136,6 +141,11 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True):
     nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
     with _raising(st, raise_ and strict):
         return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+
+
+def _out_of_time(nlp) -> bool:
+    b = getattr(nlp, "budget", None)
+    return b is not None and b.expired()
 
 
 @contextlib.contextmanager
@@ -253,13 +263,20 @@ def _model_chi2(nlp, x, stir) -> float:
 
 
 def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
-              brdf: str = "lambertian", hidden_starts: list | None = None) -> FitResult:
+              brdf: str = "lambertian", hidden_starts: list | None = None,
+              budget: Budget | None = None) -> FitResult:
     """Fit the capture ``view`` from the visible ``start`` (see the module docstring).
 
     The hidden-patch search tests each candidate in a quick model (the known patches held at
     their fitted values, the candidate a point patch); the accepted ones then enter the final
-    joint fit with everything free."""
+    joint fit with everything free.
+
+    ``budget`` (default: ``settings.time_limit`` from now): where it runs out, the stages not
+    finished are skipped and the estimate is the last fit that converged with every unknown free,
+    ``budget.stopped`` naming what was cut (see ``joint.budget``)."""
     from .policy import flatland_plane
+
+    budget = budget if budget is not None else Budget(settings.time_limit)
 
     stir = view.capture.stir
     hidden: list[HiddenStart] = list(hidden_starts or [])
@@ -279,6 +296,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     def make_nlp(pl):
         nlp_ = JointNLP(pl.model, stir, settings, sigma=(sigma, s_src), noise=noise, gauge=pl.gauge,
                         flat=pl.flat)
+        nlp_.budget = budget
         return nlp_
 
     M = len(view.ids)
@@ -286,12 +304,16 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         brdf = _glossy_patches(view, start, settings, make_nlp, stir, notes)
         plan = plan_model(view, start, settings, hidden, brdf=brdf, bounces=settings.bounces)
     nlp = make_nlp(plan)
-    sol = _solve(nlp, strict=settings.bounces is not None)
+    sol = _solve(nlp, strict=settings.bounces is not None and not budget.limited)
+    full = (plan, nlp, sol) if sol.success else None   # the last converged fit, all unknowns free
     # the bounce order the data call for: add one while its paths show above the noise
     K = plan.model.bounces
     k_max = settings.bounces or (4 if M <= 20 else 3)
     deg = max(float(np.asarray(plan.model.visibility).sum(axis=1).mean()), 1.0)
     while settings.bounces is None and K < k_max:
+        if budget.expired():
+            budget.stop("bounce-order probe")
+            break
         if plan.model.info.n_paths * deg > 3e5:
             notes.append(f"bounce order held at {K}: the next order's ~{plan.model.info.n_paths * deg:.2g} "
                          "paths exceed the model's budget (its light, if above the noise, shows in chi2)")
@@ -310,12 +332,18 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         plan_k = plan_model(view, start, settings, hidden, brdf=brdf, bounces=K)
         plan, nlp = plan_k, make_nlp(plan_k)
         sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=False)
+        if sol.success:
+            full = (plan, nlp, sol)
     want_search = settings.search.enabled and (n_hidden is None or n_hidden > len(hidden)) \
         and view.template is not None
-    if not sol.success:  # the bounce order is settled: the solve must converge now, unless
-        # returns of hidden patches it cannot model may be what holds it back (the search is next)
-        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=not want_search)
-        if not sol.success:
+    if not sol.success and not budget.expired():  # the bounce order is settled: the solve must
+        # converge now, unless returns of hidden patches it cannot model may be what holds it
+        # back (the search is next)
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx),
+                     strict=not want_search and not budget.limited)
+        if sol.success:
+            full = (plan, nlp, sol)
+        else:
             log.info(f"the visible-only fit did not converge ({sol.status}); searching its residual "
                      "for hidden patches (the final fit must converge)")
     chi2_cur = _model_chi2(nlp, sol.x, stir)
@@ -334,6 +362,9 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     tried: list = []   # every point proposed so far: a point whose patch the refit moved away
     # from (its return still unexplained there) is not proposed again
     while want_search and len(hidden) < max_h:
+        if budget.expired():
+            budget.stop("hidden-patch search")
+            break
         R = cur_nlp.whiten(stir, cur_nlp.model.simulate(cur_x[:cur_nlp.model.n_x]))
         ex = [h.position for h in hidden] + tried
         cand = search(R, view, vis_start.positions, vis_start.normals,
@@ -365,6 +396,8 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         log.info(f"hidden candidate {len(hidden) + 1} at {np.round(cand.position, 3).tolist()} "
                  f"(T = {cand.statistic:.3g}): chi2 drop {gain:.4g} vs threshold {thr:.3g}")
         if not solq.success or (n_hidden is None and gain <= thr):
+            if not solq.success and budget.expired():
+                budget.stop("hidden-patch search")
             break
         thq = planq.model.theta(solq.x[:planq.model.n_x])
         hidden = [HiddenStart(thq["position"][M + j], thq["normal"][M + j], float(thq["albedo"][M + j]),
@@ -378,6 +411,9 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     extended = set()
     if hidden and settings.search.extended:  # which hidden patches show their size
         for j in range(len(hidden)):
+            if budget.expired():
+                budget.stop("extent screening")
+                break
             try:
                 pl_e = plan_model(view, vis_start, settings, hidden, brdf=brdf, fixed_visible=True,
                                   extended={j}, bounces=K)
@@ -389,13 +425,35 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
             if sol_e.success and gain > lr_threshold(settings.search.p_value, 1):
                 extended.add(j)
         log.info(f"hidden patches whose extent the data resolve: {sorted(extended) or 'none'}")
-    if hidden:  # the final joint fit: everything free
+    if hidden and not budget.expired():  # the final joint fit: everything free
         plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K, extended=extended)
         nlp = make_nlp(plan)
-        sol = _solve(nlp)
+        sol = _solve(nlp, strict=not budget.limited)
         history.append({"n_hidden": len(hidden), "final": True,
                         "chi2": _model_chi2(nlp, sol.x, stir), "status": sol.status,
                         "wall_time_s": time.perf_counter() - t0})
+        if not sol.success and budget.expired():
+            budget.stop("final joint fit")
+        elif not sol.success and settings.ipopt.raise_on_failure:
+            raise SolverError(f"IPOPT did not converge in the final joint fit: return_status "
+                              f"'{sol.status}' after {sol.iterations} iterations. Try a better initial "
+                              "guess, more max_iter, or check that the data match the model.",
+                              status=sol.status, stats={"iterations": sol.iterations})
+    elif hidden:
+        budget.stop("final joint fit")
+    if budget.stopped:
+        where = ", ".join(budget.stopped)
+        if full is None:
+            raise SolverError(f"the time limit of {budget.limit:g} s ran out ({where}) before any fit "
+                              f"converged ({budget.elapsed():.0f} s spent). Allow more time "
+                              "(--time-limit SECONDS, 0 for none) or a smaller problem.",
+                              status="Maximum_WallTime_Exceeded", stats=budget.to_dict())
+        lost = [np.round(h.position, 3).tolist() for h in hidden]
+        plan, nlp, sol = full
+        notes.append(f"the time limit of {budget.limit:g} s ran out in: {where}; the estimate is the "
+                     "last fit that converged with every unknown free (the visible patches' fit)"
+                     + (f"; hidden candidates found but not refined: {lost}" if lost else ""))
+        log.warning(notes[-1])
     if not sol.success:
         raise SolverError(f"the fit of the visible patches did not converge ({sol.status}) and no hidden "
                           "patch explains its residual. Check that the data match the model (bounces, "
@@ -403,7 +461,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
                           stats=getattr(sol, "info", None))
     est = assemble(nlp, sol, plan.names, given=plan.given)
     est.extra["search_history"] = history
-    return FitResult(est, plan, nlp, sol, history, notes, sigma, s_src)
+    return FitResult(est, plan, nlp, sol, history, notes, sigma, s_src, budget)
 
 
 def lr_threshold(p: float, k: int) -> float:

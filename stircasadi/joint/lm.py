@@ -16,6 +16,7 @@ from scipy.optimize import least_squares
 
 from ..errors import ModelError, SolverError
 from ..progress import get_logger
+from .budget import WALL_TIME_STATUS
 from .solve import Solution
 
 log = get_logger(__name__)
@@ -145,7 +146,11 @@ def solve_sparse_lm(nlp, x0=None, max_iter: int = 100, tol: float = 1e-6) -> Sol
     f_prev, small = f, 0
     lam = 0.0
     status, it = "Maximum_Iterations_Exceeded", 0
+    budget = getattr(nlp, "budget", None)
     for it in range(1, max_iter + 1):
+        if budget is not None and budget.expired():
+            status = WALL_TIME_STATUS
+            break
         H, g = normal_eq(x)
         Hz, gz = Z.T @ H @ Z, Z.T @ g
         d = np.sqrt(np.maximum(np.diag(Hz), 1e-300))

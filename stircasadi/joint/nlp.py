@@ -57,6 +57,7 @@ class JointNLP:
         stir = np.asarray(stir, float)
         self.y = model.data_on_support(stir)
         self.noise = dict(noise or {})
+        self.budget = None   # a ``budget.Budget`` the solvers stop at (set by ``fit_joint``)
         peak = float(np.max(np.abs(stir))) if stir.size else 1.0
         self.peak = peak if peak > 0 else 1.0
         floor = cs.sigma_floor_rel * self.peak

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+import numpy as np
+
 from ..errors import ModelError
 
 _COSTS = ("oem", "pem")
@@ -272,6 +274,10 @@ class EstimateSettings:
     """Visible positions the capture does not give are refined by the joint fit when there are
     at most this many patches; above, they stay at the geometry stage's estimate and their
     covariance is propagated into the other unknowns (two-step, Murphy-Topel)."""
+    time_limit: float | None = None
+    """Wall-clock seconds for the whole estimate (``joint.budget``): solves stop at it and no
+    stage starts past it; a fit it cut short is not reported (the estimate is the last converged
+    one, flagged by the ``time-limit`` check). None: no limit."""
     cost: CostSettings = field(default_factory=CostSettings)
     constraints: ConstraintSettings = field(default_factory=ConstraintSettings)
     ipopt: IpoptSettings = field(default_factory=IpoptSettings)
@@ -284,6 +290,9 @@ class EstimateSettings:
         _choice("solver", self.solver, ("ipopt", "lm"))
         if self.bounces is not None and (not isinstance(self.bounces, int) or self.bounces < 1):
             raise ModelError(f"bounces must be None or an integer >= 1; got {self.bounces!r}.")
+        if self.time_limit is not None and not (isinstance(self.time_limit, (int, float))
+                                                and np.isfinite(self.time_limit) and self.time_limit > 0):
+            raise ModelError(f"time_limit must be None or a number of seconds > 0; got {self.time_limit!r}.")
         for f in fields(self):
             v = getattr(self, f.name)
             if hasattr(v, "validate"):

@@ -113,6 +113,8 @@ def solve_nlp(nlp, x0=None, warm: Solution | None = None) -> Solution:
         if warm.lam_g is not None and len(warm.lam_g) == len(nlp.lbg):
             lam_g0 = warm.lam_g
     opts.update(st.extra)
+    if getattr(nlp, "budget", None) is not None:
+        opts.update(nlp.budget.ipopt_options())
     sol = ipopt(xi, f_xi, g_xi, x_init * d, nlp.lbx * d, nlp.ubx * d, nlp.lbg, nlp.ubg, opts,
                 name="joint", hess_lag=hess, lam_x0=lam_x0, lam_g0=lam_g0)
     sol.x = sol.x / d
