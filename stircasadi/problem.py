@@ -4,7 +4,8 @@ A problem script is an importable factory module (STYLE.md rule 9). It defines
 ``build_scene()``, ``build_grid()`` and ``build_sensor()``, and may define ``NAME``,
 ``DESCRIPTION`` (the line ``stircasadi problems`` prints; default: the docstring's first sentence),
 ``truth()`` (default: the scene's ``truth_dict()``) and ``ESTIMATE`` (options of
-``stircasadi run``, e.g. ``{"stage": "reflectance"}`` for a reflectance twin with known geometry).
+``stircasadi run``: ``{"stage": "reflectance"}`` for a reflectance twin with known geometry,
+``"brdf"``, ``"hidden"``, ``"time_limit"`` in seconds).
 Problem scripts use absolute imports only, so a copy placed anywhere runs by path::
 
     stircasadi run my_scene.py        python my_scene.py
