@@ -24,7 +24,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..errors import SolverError
 from ..progress import get_logger
-from .budget import Budget
+from .budget import WALL_TIME_STATUS, Budget
 from .lm import solve_lm
 from .nlp import JointNLP
 from .policy import HiddenStart, VisibleStart, plan_model
@@ -103,14 +103,21 @@ def fit_model(model, stir, settings=None, noise: dict | None = None, sigma=None,
     return est
 
 
-def _solve(nlp, warm=None, x0=None, strict: bool = True):
+def _solve(nlp, warm=None, x0=None, strict: bool = True, first: bool = False):
     """Solve; when IPOPT cannot converge because the data leave directions flat (a degenerate
     problem: it crawls along the valley), hold the unknowns of those directions
     (``uncertainty.degenerate`` at the point reached) and solve again from there. The held
-    unknowns are reported unidentified (``nlp.frozen``)."""
+    unknowns are reported unidentified (``nlp.frozen``). Past the time limit nothing is built
+    (a non-success ``Solution`` comes back), except for the ``first`` fit of an estimate, which
+    IPOPT's ``max_wall_time`` (at least 1 s) bounds."""
     from .uncertainty import degenerate
 
     nlp.frozen = []
+    if not first and _out_of_time(nlp):   # no solver is built past the limit (an exact Hessian's build alone
+        # can take minutes on a 147-patch model)
+        x = np.clip(np.asarray(x0 if x0 is not None else (warm.x if warm is not None else nlp.x0), float),
+                    nlp.lbx, nlp.ubx)
+        return Solution(x, False, WALL_TIME_STATUS, 0, float("nan"), 0.0, 0.0, solver="none")
     if nlp.settings.solver == "lm":
         return solve_lm(nlp)
     if len(nlp.y) * nlp.n_x > 2e8 and not nlp.poisson and not nlp.pem:
@@ -304,7 +311,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         brdf = _glossy_patches(view, start, settings, make_nlp, stir, notes)
         plan = plan_model(view, start, settings, hidden, brdf=brdf, bounces=settings.bounces)
     nlp = make_nlp(plan)
-    sol = _solve(nlp, strict=settings.bounces is not None and not budget.limited)
+    sol = _solve(nlp, strict=settings.bounces is not None and not budget.limited, first=True)
     full = (plan, nlp, sol) if sol.success else None   # the last converged fit, all unknowns free
     # the bounce order the data call for: add one while its paths show above the noise
     K = plan.model.bounces
