@@ -151,75 +151,142 @@ def _with_frame(relay: Relay, frame) -> Relay:
                  relay.gain, relay.sigma, relay.irf, relay.confocal, frame, dict(relay.meta))
 
 
-def _find_frame(relay: Relay, margin: float, n: int, n_traces: int, top: float = 0.7):
-    """Step 3: (frame, bright points (K, 3), weights) from a coarse backprojection in a world box:
-    ``w`` points from the relay's centroid to the brightest voxels' centroid."""
+def matched_score(relay: Relay, X: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """Point-scatterer detection score of points ``X`` (K, 3): with the relay weights
+    a_p(X) = g_p max(cos_L, 0) max(cos_D, 0) / (|X - L|^2 |X - D|^2) (the hidden element's own
+    cosines taken as 1) and y_p(t) the trace read at the path length (linear interpolation),
+    score = (sum_p a_p y_p(t_p))^2 / (sum_p a_p^2 sigma^2): the chi^2 decrease of the best
+    single point at X (a radiometrically weighted, normalised backprojection)."""
+    g = relay.grid
+    T = g.n_bins
+    num, den = np.zeros(len(X)), np.zeros(len(X))
+    flat = np.concatenate([relay.traces, np.zeros((relay.n_traces, 1))], axis=1)
+    for p0 in range(0, relay.n_traces, chunk):
+        sl = slice(p0, min(p0 + chunk, relay.n_traces))
+        vL = X[None] - relay.L[sl, None]
+        vD = X[None] - relay.D[sl, None]
+        dL, dD = np.linalg.norm(vL, axis=-1), np.linalg.norm(vD, axis=-1)
+        cL = np.maximum(np.einsum("pkd,pd->pk", vL, relay.nL[sl]) / dL, 0.0)
+        cD = np.maximum(np.einsum("pkd,pd->pk", vD, relay.nD[sl]) / dD, 0.0)
+        a = relay.gain[sl, None] * cL * cD / (dL * dL * dD * dD)
+        pos = (relay.leg[sl, None] + dL + dD - g.start) / g.bin_width - 0.5
+        i0 = np.floor(pos).astype(np.int64)
+        fr = pos - i0
+        bad = (i0 < 0) | (i0 >= T - 1)
+        i0[bad] = T
+        rows = (np.arange(sl.start, sl.stop) * (T + 1))[:, None]
+        lo = flat.ravel()[i0 + rows]
+        hi = flat.ravel()[np.where(bad, T, i0 + 1) + rows]
+        num += np.sum(a * (lo + (hi - lo) * fr), axis=0)
+        den += np.sum(a * a, axis=0)
+    sig = float(np.mean(relay.sigma)) if relay.sigma is not None else 1.0
+    return num * np.abs(num) / np.maximum(den * sig * sig, 1e-300)
+
+
+def _find_frame(relay: Relay, margin: float, n: int, n_traces: int, top: float = 0.5):
+    """Step 3: (frame, bright points (K, 3), weights): the matched score on a world box; the
+    points scoring above ``top`` of the best, a weighted plane through them (w its normal, from
+    the relay into the hidden scene)."""
     pts = np.vstack([relay.L, relay.D])
     lo, hi = pts.min(0) - margin, pts.max(0) + margin
     sub = relay.subset(np.unique(np.linspace(0, relay.n_traces - 1, min(n_traces, relay.n_traces)).astype(int)))
-    rl = _with_frame(sub, (lo, *np.eye(3)))
-    span = hi - lo
-    vst = VolumeSettings(gate_m=0.0, n_lateral=n, xy_range=(0.0, span[0], 0.0, span[1]),
-                         z_range=(0.0, span[2]), n_depth=n, bp_filter="none")
-    vol = backprojection(rl, vst)
-    v = np.asarray(vol.vol, float)
-    keep = v >= top * v.max()
-    iz, iy, ix = np.nonzero(keep)
-    X = lo + np.stack([vol.x[ix], vol.y[iy], vol.z[iz]], 1)
-    wgt = v[keep]
+    ax = [np.linspace(lo[k], hi[k], n) for k in range(3)]
+    G = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    sc = matched_score(sub, G)
+    keep = sc >= top * sc.max()
+    X, wgt = G[keep], sc[keep]
     c = np.average(X, axis=0, weights=wgt)
-    w = c - pts.mean(0)
-    w /= np.linalg.norm(w)
+    if len(X) >= 3:
+        w = np.linalg.svd((X - c) * np.sqrt(wgt)[:, None], full_matrices=False)[2][-1]
+    else:
+        w = c - pts.mean(0)
+    w = w / np.linalg.norm(w)
+    if w @ (c - pts.mean(0)) < 0:
+        w = -w
     ex = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = ex - (ex @ w) * w
     u /= np.linalg.norm(u)
     return (c, u, np.cross(w, u), w), X, wgt
 
 
-def hidden_surface_from_stir(capture, visible: VisiblePatches, settings: SurfaceSettings | None = None,
-                             ill_step: int = 2, obs_step: int = 1, frame=None, irf=None,
-                             search_margin: float = 0.8, margin: float = 0.25, depth_pad: float = 0.3,
-                             n_lateral: int = 24, n_depth: int = 48) -> StirSurface:
-    """Reconstruct the hidden surface of a full-STIR ``capture`` from its third bounce off the
-    ``visible`` patches (see the module docstring). ``settings`` default: 8 x 8 nodes, one
-    level, known gain. ``frame`` (c, u, v, w): the depth map's frame (else found, step 3).
+def _plane_frame(points, weights, towards):
+    """(c, u, v, w) of the weighted plane through ``points``; w points away from ``towards``."""
+    c = np.average(points, axis=0, weights=weights)
+    w = np.linalg.svd((points - c) * np.sqrt(weights)[:, None], full_matrices=False)[2][-1]
+    w = w if w @ (c - towards) > 0 else -w
+    ex = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ex - (ex @ w) * w
+    u /= np.linalg.norm(u)
+    return c, u, np.cross(w, u), w
 
-    Returns ``StirSurface`` (surface fit, relay, initialising volume and maps, frame, and stats:
-    wall times per stage, traces, peak resident memory of the process)."""
+
+def _box(X, frame, margin):
+    c, u, v, _ = frame
+    a, b = (X - c) @ u, (X - c) @ v
+    ga, gb = max(margin * np.ptp(a), 0.15), max(margin * np.ptp(b), 0.15)
+    return a.min() - ga, a.max() + ga, b.min() - gb, b.max() + gb
+
+
+def hidden_surface_from_stir(capture, visible: VisiblePatches, settings: SurfaceSettings | None = None,
+                             ill_step: int = 8, obs_step: int = 1, frame=None, irf=None,
+                             search_margin: float = 0.8, margin: float = 0.25, depth_pad: float = 0.3,
+                             refine: bool = True, coarse_nodes: int = 6, coarse_iter: int = 8) -> StirSurface:
+    """Reconstruct the hidden surface of a full-STIR ``capture`` from its third bounce off the
+    ``visible`` patches (see the module docstring). ``settings``: the final fit's (default
+    8 x 8 nodes, one level, known gain, 15 iterations). ``frame`` (c, u, v, w): a stated frame
+    of the depth map (the surface must be a height field over it); else found (step 3). With
+    ``refine`` a coarse fit (``coarse_nodes``, ``coarse_iter``) in that frame is followed by a
+    weighted plane through its masked nodes: the final fit's frame is parallel to it and its
+    extent the masked nodes' grown by ``margin`` (at least 0.15 m).
+
+    Returns ``StirSurface`` (final surface fit, relay, initialising volume and maps, frame, and
+    stats: wall times per stage, traces, the coarse fit, peak resident memory of the process)."""
+    from dataclasses import replace
+
     t0 = time.perf_counter()
     rl = third_bounce_relay(capture, visible, ill_step, obs_step, irf)
     t1 = time.perf_counter()
-    stats = {"traces": rl.n_traces, "ill_step": ill_step, "obs_step": obs_step,
-             "subtract_s": t1 - t0}
+    stats = {"traces": rl.n_traces, "ill_step": ill_step, "obs_step": obs_step, "subtract_s": t1 - t0}
+    relay_mid = np.vstack([rl.L, rl.D]).mean(0)
     if frame is None:
         frame, X, _ = _find_frame(rl, search_margin, 32, 1500)
+        x0, x1, y0, y1 = _box(X, frame, margin)
     else:
         frame = tuple(np.asarray(a, float) for a in frame)
-        X = None
-    t2 = time.perf_counter()
-    stats["frame_s"] = t2 - t1
-    c, u, v, w = frame
-    if X is None:
         x0, x1, y0, y1 = -0.5, 0.5, -0.5, 0.5
-    else:
-        a, b = (X - c) @ u, (X - c) @ v
-        ga, gb = margin * max(np.ptp(a), 0.05), margin * max(np.ptp(b), 0.05)
-        x0, x1, y0, y1 = a.min() - ga, a.max() + ga, b.min() - gb, b.max() + gb
+    stats["frame_s"] = time.perf_counter() - t1
+    c, u, v, w = frame
     # the depth map's origin sits depth_pad before the plane: BP depths are >= 0
-    frame = (c - depth_pad * w, u, v, w)
-    rl = _with_frame(rl, frame)
-    vst = VolumeSettings(gate_m=0.0, n_lateral=n_lateral, xy_range=(x0, x1, y0, y1),
-                         z_range=(0.0, 2 * depth_pad), n_depth=n_depth, bp_filter="laplacian")
+    rl = _with_frame(rl, (c - depth_pad * w, u, v, w))
+    t2 = time.perf_counter()
+    vst = VolumeSettings(gate_m=0.0, n_lateral=24, xy_range=(x0, x1, y0, y1),
+                         z_range=(0.0, 2 * depth_pad), n_depth=48, bp_filter="laplacian")
     vol = backprojection(rl, vst)
     maps = vol.maps()
-    t3 = time.perf_counter()
-    stats["backprojection_s"] = t3 - t2
-    st = settings or SurfaceSettings(n_nodes=8, levels=1, known_gain=True, max_iter=40)
+    stats["backprojection_s"] = time.perf_counter() - t2
+    st = settings or SurfaceSettings(n_nodes=8, levels=1, known_gain=True, max_iter=15, fit_sigma=False)
+    if refine:
+        t3 = time.perf_counter()
+        coarse = fit_surface(rl, maps, replace(st, n_nodes=coarse_nodes, levels=1, max_iter=coarse_iter,
+                                                subsamples=1, extent=None), gate=None)
+        m = coarse.mask if coarse.mask.sum() >= 4 else coarse.albedo >= 0.5 * coarse.albedo.max()
+        Xc = coarse.points()[m]
+        fr2 = _plane_frame(Xc, coarse.albedo[m], relay_mid)
+        ext = _box(Xc, fr2, margin)
+        c2, u2, v2, w2 = fr2
+        rl = _with_frame(rl, (c2 - depth_pad * w2, u2, v2, w2))
+        xs, ys = np.linspace(ext[0], ext[1], 12), np.linspace(ext[2], ext[3], 12)
+        maps = Maps(np.full((12, 12), depth_pad), np.ones((12, 12)), np.ones((12, 12), bool), xs, ys,
+                    rl.frame)
+        st = replace(st, extent=ext)
+        stats["coarse"] = {"wall_time_s": time.perf_counter() - t3, "mask_nodes": int(coarse.mask.sum()),
+                           "chi2_dof": coarse.chi2_dof, "status": coarse.levels[-1]["status"]}
+    t4 = time.perf_counter()
     surf = fit_surface(rl, maps, st, gate=None)
-    stats["surface_s"] = time.perf_counter() - t3
+    stats["surface_s"] = time.perf_counter() - t4
     stats["total_s"] = time.perf_counter() - t0
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return StirSurface(surf, rl, vol, maps, frame, stats)
+    return StirSurface(surf, rl, vol, maps, rl.frame, stats)
 
 
 def compare_with_patches(surface: SurfaceResult, positions, normals) -> dict:
