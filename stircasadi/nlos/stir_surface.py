@@ -321,3 +321,41 @@ def compare_with_patches(surface: SurfaceResult, positions, normals) -> dict:
             "z_score": np.abs(err) / np.maximum(dstd, 1e-300),
             "normal_deg": np.degrees(np.arccos(np.clip(np.sum(nrm * Nt, axis=1), -1, 1))),
             "normal_std_deg": np.degrees(nstd), "lateral_out": out_of}
+
+
+def _main(argv=None) -> None:
+    """Twin study (known relay: the scene's visible patches): ``python -m
+    stircasadi.nlos.stir_surface --noise 1e-8 --ill-step 12``. Truth is read here only, to compare."""
+    import argparse
+
+    from ..problems import three_planes_occluded as P
+    from ..problems._common import paper_sensor
+    from ..transport import simulate
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--noise", type=float, default=1e-6)
+    ap.add_argument("--ill-step", type=int, default=12)
+    ap.add_argument("--nodes", type=int, default=8)
+    ap.add_argument("--iter", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    sc, sen = P.build_scene(), paper_sensor(a.noise)
+    cap = sen.capture(simulate(sc, P.build_grid(), sensor=sen), seed=a.seed)
+    st = SurfaceSettings(n_nodes=a.nodes, levels=1, known_gain=True, max_iter=a.iter, fit_sigma=False)
+    r = hidden_surface_from_stir(cap, VisiblePatches.from_scene(sc), st, ill_step=a.ill_step)
+    s, hid = r.surface, sc.hidden
+    m = compare_with_patches(s, sc.positions[hid], sc.normals[hid])
+    ins = m["inside"]
+    print(f"noise {a.noise:g}, traces {r.relay.n_traces}, nodes {s.shape}, mask {int(s.mask.sum())}, "
+          f"chi2/dof {s.chi2_dof:.3g}, reasons {s.reasons}")
+    print("stats", {k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.stats.items()})
+    print(f"patches inside the mask {int(ins.sum())} of {len(ins)}")
+    if ins.any():
+        for k in ("depth_err", "depth_std", "z_score", "normal_deg", "normal_std_deg"):
+            q = np.abs(m[k][ins])
+            print(f"{k}: median {np.median(q):.4g}, p90 {np.percentile(q, 90):.4g}")
+        print(f"fraction |err|/std <= 2: {np.mean(m['z_score'][ins] <= 2):.3f}")
+
+
+if __name__ == "__main__":
+    _main()
