@@ -27,6 +27,16 @@ Steps of :func:`hidden_surface_from_stir`
    ``margin``): its depth / albedo / mask maps initialise ``fit_surface`` (known gain: the
    albedo is absolute, per unit area of the surface).
 
+Status (measured on the twin, ``python -m stircasadi.nlos.stir_surface --noise 1e-8 --ill-step
+12``: 882 traces, 6 x 6 coarse then 8 x 8 nodes, 10 LM iterations): not yet a reliable
+reconstruction. The final fit stops at its iteration limit with chi2/dof 2.05; 34 of the 49
+patches fall in its mask, depth errors median 1.4 cm (p90 4.2 cm), normals median 7.5 deg, and
+the Fisher std (median 0.4 mm) do not cover the errors (|err|/std median 37). 458 s, 4.1 GB
+peak. Suspected causes: point patches (fill factor 0.625) against a continuous-cell model, the
+frame search (the final frame is 18 deg off the panel's plane, its extent 1.6 x 1.1 m for a
+0.5 m panel). At the problem's own 1e-6 the third bounce is ~1 noise std per bin (total SNR ~98
+over all 9604 traces).
+
 Neglects: errors of the visible geometry (they leave second-bounce residuals), the occlusion of
 relay-hidden legs by the occluders (``surface.physics``), the hidden-to-visible fourth bounce.
 """
