@@ -34,8 +34,9 @@ patches fall in its mask, depth errors median 1.4 cm (p90 4.2 cm), normals media
 the Fisher std (median 0.4 mm) do not cover the errors (|err|/std median 37). 458 s, 4.1 GB
 peak. Suspected causes: point patches (fill factor 0.625) against a continuous-cell model, the
 frame search (the final frame is 18 deg off the panel's plane, its extent 1.6 x 1.1 m for a
-0.5 m panel). At the problem's own 1e-6 the third bounce is ~1 noise std per bin (total SNR ~98
-over all 9604 traces).
+0.5 m panel). At the problem's own 1e-6 (``--noise 1e-6 --ill-step 12``) the third bounce is ~1
+noise std per bin (total SNR ~98 over all 9604 traces): the fit's mask keeps 2 of 64 nodes, no
+patch falls inside it (chi2/dof 1.0; 551 s, 3.7 GB).
 
 Neglects: errors of the visible geometry (they leave second-bounce residuals), the occlusion of
 relay-hidden legs by the occluders (``surface.physics``), the hidden-to-visible fourth bounce.
