@@ -38,14 +38,15 @@ __all__ = ["backprojection", "default_grid"]
 
 
 def default_grid(relay: Relay, st: VolumeSettings, gate: float):
-    """Lateral axes (x, y) over the relay's extent and depths z over the time window."""
+    """Lateral axes (x, y) over the relay's extent (or ``xy_range``) and depths z over the time window."""
     c, u, v, w = relay.frame
     P = np.vstack([relay.L, relay.D]) - c
     a, b = P @ u, P @ v
     n = int(st.n_lateral) if st.n_lateral is not None else (
         int(round(math.sqrt(relay.n_traces))) if relay.confocal else 32)
-    x = np.linspace(a.min(), a.max(), n)
-    y = np.linspace(b.min(), b.max(), n)
+    x0, x1, y0, y1 = st.xy_range if st.xy_range is not None else (a.min(), a.max(), b.min(), b.max())
+    x = np.linspace(x0, x1, n)
+    y = np.linspace(y0, y1, n)
     g = relay.grid
     if st.z_range is not None:
         z0, z1 = st.z_range
@@ -64,7 +65,7 @@ def backprojection(relay: Relay, settings: VolumeSettings | None = None) -> Volu
     Parameters
     ----------
     relay : any ``Relay`` (confocal, paired or from a full STIR).
-    settings : ``VolumeSettings`` (bin_factor, gate_m, t_max, n_lateral, z_range, n_depth,
+    settings : ``VolumeSettings`` (bin_factor, gate_m, t_max, n_lateral, xy_range, z_range, n_depth,
         bp_filter, chunk_bytes).
 
     Returns

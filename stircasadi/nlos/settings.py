@@ -28,6 +28,10 @@ class VolumeSettings:
     dtype: str = "float32"
     #: backprojection: lateral voxels per side (None: the scan's own grid, else 32)
     n_lateral: int | None = None
+    #: backprojection: lateral range (x0, x1, y0, y1) in the relay frame (metres along u, v from
+    #: its centre); None: the relay points' extent (a hidden object beside the relay, e.g. a
+    #: full STIR's hidden panel, lies outside it)
+    xy_range: tuple | None = None
     #: backprojection: depth range (metres along the wall normal); None: from the time window
     z_range: tuple | None = None
     #: backprojection: depth voxels (None: one per half bin over z_range)
@@ -59,6 +63,10 @@ class VolumeSettings:
         if self.z_range is not None and not (len(self.z_range) == 2 and 0 <= self.z_range[0] < self.z_range[1]):
             raise ReconstructionError(f"z_range must be (z_min, z_max) with 0 <= z_min < z_max metres; "
                                       f"got {self.z_range!r}.")
+        if self.xy_range is not None and not (len(self.xy_range) == 4 and self.xy_range[0] < self.xy_range[1]
+                                              and self.xy_range[2] < self.xy_range[3]):
+            raise ReconstructionError(f"xy_range must be (x0, x1, y0, y1) with x0 < x1, y0 < y1 metres; "
+                                      f"got {self.xy_range!r}.")
         if self.chunk_bytes < 2 ** 20:
             raise ReconstructionError(f"chunk_bytes must be >= 1 MiB; got {self.chunk_bytes!r}.")
         return self
