@@ -133,10 +133,10 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True, first: bool = False):
         rescued = _rescue(nlp, sol)
     if rescued is not None:
         return rescued
-    frozen = degenerate(nlp, sol.x) if not _out_of_time(nlp) else []
+    if _out_of_time(nlp):   # the limit came during the Gauss-Newton continuation
+        return sol
+    frozen = degenerate(nlp, sol.x)
     if not frozen:
-        if _out_of_time(nlp):
-            return sol
         if raise_ and strict:
             raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
                               f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
