@@ -52,5 +52,10 @@ class Budget:
         if stage not in self.stopped:
             self.stopped.append(stage)
 
+    def summary(self) -> str:
+        """What the limit cut, in the words the fit's note and the ``time-limit`` check share."""
+        return (f"the time limit of {self.limit:g} s ran out in: {', '.join(self.stopped)}; the "
+                "estimate is the last fit that converged with every unknown free")
+
     def to_dict(self) -> dict:
         return {"limit_s": self.limit, "elapsed_s": self.elapsed(), "stopped": list(self.stopped)}

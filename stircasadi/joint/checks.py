@@ -119,9 +119,8 @@ def run_checks(view, fit, settings, first_paths=None) -> list[Check]:
     cut = budget is not None and bool(budget.stopped)
     if cut:
         out.append(Check("time-limit", False, budget.elapsed(), budget.limit,
-                         f"the time limit of {budget.limit:g} s ran out in: {', '.join(budget.stopped)}; "
-                         "the estimate is the last fit that converged with every unknown free, not the "
-                         "full estimate (allow more time: --time-limit SECONDS, 0 for none)"))
+                         budget.summary() + ", not the full estimate (allow more time: --time-limit "
+                         "SECONDS, 0 for none)"))
     # the linearity probe is skipped for a result the limit already marks incomplete
     lin = None if cut else _linearity(nlp, sol.x, est.extra.get("cov_x"), est.extra.get("null_x"),
                                       cs.linearity_k, cs.linearity_max_dirs)

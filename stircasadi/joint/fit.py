@@ -136,18 +136,19 @@ def _solve(nlp, warm=None, x0=None, strict: bool = True, first: bool = False):
     if _out_of_time(nlp):   # the limit came during the Gauss-Newton continuation
         return sol
     frozen = degenerate(nlp, sol.x)
-    if not frozen:
-        if raise_ and strict:
-            raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
-                              f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
-                              "guess, more max_iter, or check that the data match the model.",
-                              status=sol.status, stats={"iterations": sol.iterations})
-        return sol
-    nlp.frozen = frozen
-    nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
-    nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
-    with _raising(st, raise_ and strict):
-        return solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    if frozen:
+        nlp.frozen = frozen
+        nlp.lbx, nlp.ubx = nlp.lbx.copy(), nlp.ubx.copy()
+        nlp.lbx[frozen] = nlp.ubx[frozen] = np.clip(sol.x[frozen], nlp.lbx[frozen], nlp.ubx[frozen])
+        with _raising(st, False):
+            sol = solve_nlp(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx))
+    # a solve the time limit stopped is returned (the caller falls back), never raised
+    if not sol.success and raise_ and strict and not _out_of_time(nlp):
+        raise SolverError(f"IPOPT did not converge: return_status '{sol.status}' after "
+                          f"{sol.iterations} iterations (cost {sol.cost:.6g}). Try a better initial "
+                          "guess, more max_iter, or check that the data match the model.",
+                          status=sol.status, stats={"iterations": sol.iterations})
+    return sol
 
 
 def _out_of_time(nlp) -> bool:
@@ -311,7 +312,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
         brdf = _glossy_patches(view, start, settings, make_nlp, stir, notes)
         plan = plan_model(view, start, settings, hidden, brdf=brdf, bounces=settings.bounces)
     nlp = make_nlp(plan)
-    sol = _solve(nlp, strict=settings.bounces is not None and not budget.limited, first=True)
+    sol = _solve(nlp, strict=settings.bounces is not None, first=True)
     full = (plan, nlp, sol) if sol.success else None   # the last converged fit, all unknowns free
     # the bounce order the data call for: add one while its paths show above the noise
     K = plan.model.bounces
@@ -346,8 +347,7 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     if not sol.success and not budget.expired():  # the bounce order is settled: the solve must
         # converge now, unless returns of hidden patches it cannot model may be what holds it
         # back (the search is next)
-        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx),
-                     strict=not want_search and not budget.limited)
+        sol = _solve(nlp, x0=np.clip(sol.x, nlp.lbx, nlp.ubx), strict=not want_search)
         if sol.success:
             full = (plan, nlp, sol)
         else:
@@ -435,17 +435,12 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
     if hidden and not budget.expired():  # the final joint fit: everything free
         plan = plan_model(view, vis_start, settings, hidden, brdf=brdf, bounces=K, extended=extended)
         nlp = make_nlp(plan)
-        sol = _solve(nlp, strict=not budget.limited)
+        sol = _solve(nlp)
         history.append({"n_hidden": len(hidden), "final": True,
                         "chi2": _model_chi2(nlp, sol.x, stir), "status": sol.status,
                         "wall_time_s": time.perf_counter() - t0})
         if not sol.success and budget.expired():
             budget.stop("final joint fit")
-        elif not sol.success and settings.ipopt.raise_on_failure:
-            raise SolverError(f"IPOPT did not converge in the final joint fit: return_status "
-                              f"'{sol.status}' after {sol.iterations} iterations. Try a better initial "
-                              "guess, more max_iter, or check that the data match the model.",
-                              status=sol.status, stats={"iterations": sol.iterations})
     elif hidden:
         budget.stop("final joint fit")
     if budget.stopped:
@@ -454,11 +449,10 @@ def fit_joint(view, start: VisibleStart, settings, n_hidden: int | None = None,
             raise SolverError(f"the time limit of {budget.limit:g} s ran out ({where}) before any fit "
                               f"converged ({budget.elapsed():.0f} s spent). Allow more time "
                               "(--time-limit SECONDS, 0 for none) or a smaller problem.",
-                              status="Maximum_WallTime_Exceeded", stats=budget.to_dict())
+                              status=WALL_TIME_STATUS, stats=budget.to_dict())
         lost = [np.round(h.position, 3).tolist() for h in hidden]
         plan, nlp, sol = full
-        notes.append(f"the time limit of {budget.limit:g} s ran out in: {where}; the estimate is the "
-                     "last fit that converged with every unknown free (the visible patches' fit)"
+        notes.append(budget.summary() + " (the visible patches' fit)"
                      + (f"; hidden candidates found but not refined: {lost}" if lost else ""))
         log.warning(notes[-1])
     if not sol.success:
