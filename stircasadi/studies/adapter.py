@@ -3,8 +3,8 @@
 When to use
 -----------
 ``run_estimate(capture, params)`` is what every study cell calls to estimate: it maps the
-solver factors (``solver``, ``tol``, ``max_iter``, ``model_bounces``) onto the estimator's
-settings object and calls the public entry point ``stircasadi.pipeline.estimate_capture``.
+solver factors (``solver``, ``tol``, ``max_iter``, ``time_limit``, ``model_bounces``) onto the
+estimator's settings object and calls the public entry point ``stircasadi.pipeline.estimate_capture``.
 When the estimator's settings change, only ``estimator_settings`` changes.
 
 Mapping (onto ``stircasadi.joint.settings.EstimateSettings``, the estimator's settings):
@@ -18,6 +18,7 @@ solver ipopt-lbfgs      solver="ipopt", ipopt.hessian="limited-memory"
 solver lm-ad / lm-fd    solver="lm", lm.jacobian="ad" / "fd"
 tol                     ipopt.tol; lm.xtol = lm.ftol = lm.gtol
 max_iter                ipopt.max_iter; lm.max_nfev
+time_limit              time_limit (seconds; 0: none)
 model_bounces           bounces (the model's order; "auto": the estimator's choice)
 =====================  =====================================================
 
@@ -33,7 +34,7 @@ from __future__ import annotations
 
 __all__ = ["estimator_settings", "run_estimate", "SOLVER_KEYS"]
 
-SOLVER_KEYS = ("solver", "tol", "max_iter", "model_bounces")
+SOLVER_KEYS = ("solver", "tol", "max_iter", "time_limit", "model_bounces")
 _HESSIAN = {"ipopt-exact": "exact", "ipopt-gauss-newton": "gauss-newton", "ipopt-lbfgs": "limited-memory"}
 
 
@@ -58,6 +59,8 @@ def estimator_settings(params: dict):
     if "max_iter" in params:
         s.ipopt.max_iter = int(params["max_iter"])
         s.lm.max_nfev = int(params["max_iter"])
+    if params.get("time_limit"):
+        s.time_limit = float(params["time_limit"])
     if params.get("model_bounces", "auto") != "auto":
         s.bounces = int(params["model_bounces"])
     return s.validate()

@@ -109,6 +109,9 @@ FACTORS: dict[str, Factor] = {f.name: f for f in [
     Factor("tol", "solver tolerance (IPOPT tol; LM xtol = ftol = gtol)", "a number > 0",
            _pos_num, "estimate"),
     Factor("max_iter", "solver iteration limit", "an integer >= 1", _pos_int, "estimate"),
+    Factor("time_limit", "the estimator's wall-time limit in seconds (EstimateSettings.time_limit; "
+           "0: none, the default of a study cell); a cut estimate is flagged 'time-limit'",
+           "a number >= 0 (s)", _nonneg_num, "estimate"),
     Factor("model_bounces", "bounce order of the estimator's model: 'auto' or an integer",
            "'auto' or an integer >= 1", lambda v: v == "auto" or _pos_int(v), "estimate"),
     Factor("hidden", "number of hidden patches the estimator places: 'auto' (detect) or an integer",

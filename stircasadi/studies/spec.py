@@ -23,6 +23,11 @@ Write a study as a TOML or YAML file (or build a ``Study`` in Python) and run it
     label = "grazing"
     scene = "hard:grazing"
 
+    [[cases]]                # a case may narrow the design for itself: its own factor
+    problem = "three_planes" # lists (replacing the study's for this case only) and its
+    repetitions = 1          # own number of repetitions (an expensive scene, fewer cells)
+    factors.solver = ["ipopt-exact"]
+
     [[exclude]]              # optional: drop design points matching all these values
     label = "grazing"
     solver = "lm-ad"
@@ -36,8 +41,10 @@ Write a study as a TOML or YAML file (or build a ``Study`` in Python) and run it
     time = "estimate_s"
 
 Cells = cases x product(factors) x repetitions; a cell's parameters are ``base``, then the case,
-then the factor values, then ``repetition`` and ``seed`` (= ``seed + repetition``). Every key is
-checked against ``stircasadi.studies.factors.FACTORS``.
+then the factor values, then ``repetition`` and ``seed`` (= ``seed + repetition``). A case's own
+``factors`` table replaces the study's lists of the factors it names (for that case only) and its
+``repetitions`` the study's count. Every other key is checked against
+``stircasadi.studies.factors.FACTORS``.
 """
 from __future__ import annotations
 
@@ -71,7 +78,9 @@ class Study:
     factors: dict = field(default_factory=dict)
     """factor name -> list of values, crossed in full."""
     cases: list = field(default_factory=list)
-    """Explicit cells (dicts of factor values), each crossed with ``factors``."""
+    """Explicit cells (dicts of factor values), each crossed with ``factors``. A case may hold
+    ``factors`` (a table of lists replacing the study's lists of those factors for this case) and
+    ``repetitions`` (this case's count)."""
     exclude: list = field(default_factory=list)
     """Partial cells (dicts of factor values): a design point matching every value of one of
     them is dropped (e.g. a combination that does not finish)."""
@@ -165,6 +174,9 @@ class Study:
             if not isinstance(d, dict):
                 raise StudyError(f"{where} must be a table of factor values; got {type(d).__name__}.")
             for k, v in d.items():
+                if where.startswith("cases[") and k in _CASE_KEYS:
+                    _check_case_key(where, k, v)
+                    continue
                 check_factor(k, v)
         cells = self.cells()
         if not cells:
@@ -175,22 +187,29 @@ class Study:
         return self
 
     # ------------------------------------------------------------------ design
-    def design_points(self) -> list[dict]:
-        """Cells without repetition: base + case + factor combination."""
-        names = list(self.factors)
-        combos = list(itertools.product(*(self.factors[n] for n in names))) if names else [()]
+    def _design(self) -> list[tuple[dict, int]]:
+        """(design point, repetitions) for every case x factor combination not excluded."""
         out = []
         for case in (self.cases or [{}]):
+            factors = {**self.factors, **(case.get("factors") or {})}
+            reps = case.get("repetitions", self.repetitions)
+            fixed = {k: v for k, v in case.items() if k not in _CASE_KEYS}
+            names = list(factors)
+            combos = list(itertools.product(*(factors[n] for n in names))) if names else [()]
             for combo in combos:
-                p = {**self.base, **case, **dict(zip(names, combo))}
+                p = {**self.base, **fixed, **dict(zip(names, combo))}
                 if not any(all(k in p and p[k] == v for k, v in ex.items()) for ex in self.exclude):
-                    out.append(p)
+                    out.append((p, reps))
         return out
+
+    def design_points(self) -> list[dict]:
+        """Cells without repetition: base + case + factor combination."""
+        return [p for p, _ in self._design()]
 
     def cells(self) -> list[dict]:
         """Every cell: a design point with ``repetition`` and ``seed``."""
         return [{**p, "repetition": r, "seed": self.seed + r}
-                for p in self.design_points() for r in range(self.repetitions)]
+                for p, reps in self._design() for r in range(reps)]
 
     def varied(self) -> list[str]:
         """Factor names that take more than one value across the cells."""
@@ -220,6 +239,26 @@ def _apply_size(d: dict, over: dict) -> dict:
         keep = set(over["keep_cases"])
         d["cases"] = [c for c in d.get("cases", []) if c.get("label") in keep]
     return d
+
+
+#: keys a case may hold besides factor values: its own factor lists and repetitions
+_CASE_KEYS = ("factors", "repetitions")
+
+
+def _check_case_key(where: str, key: str, value) -> None:
+    if key == "repetitions":
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise StudyError(f"{where}.repetitions must be an integer >= 1; got {value!r}.")
+        return
+    if not isinstance(value, dict):
+        raise StudyError(f"{where}.factors must be a table of factor lists (factors.solver = "
+                         f"[\"ipopt-exact\"]); got {type(value).__name__}.")
+    for k, v in value.items():
+        if not isinstance(v, list) or not v:
+            raise StudyError(f"Factor {k!r} under {where}.factors must be a non-empty list of values; "
+                             f"got {v!r}. A single value goes in the case itself.")
+        for x in v:
+            check_factor(k, x)
 
 
 def _check_cell(c: dict) -> None:
