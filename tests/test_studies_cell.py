@@ -68,6 +68,9 @@ def test_solver_factors_map_onto_the_estimator_settings():
     assert s.ipopt.hessian == "limited-memory"
     s = estimator_settings({"solver": "lm-fd", "tol": 1e-9, "model_bounces": 3})
     assert (s.solver, s.lm.jacobian, s.lm.xtol, s.lm.gtol, s.bounces) == ("lm", "fd", 1e-9, 1e-9, 3)
+    assert s.time_limit is None
+    assert estimator_settings({"time_limit": 120}).time_limit == 120.0
+    assert estimator_settings({"time_limit": 0}).time_limit is None   # 0: no limit
 
 
 def test_effect_switches_change_what_they_promise():

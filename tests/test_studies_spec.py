@@ -65,6 +65,37 @@ def test_cases_cross_the_factors_and_case_values_override_base():
     assert {c["noise"] for c in cells if c["label"] == "a"} == {1e-4}
 
 
+def test_a_case_narrows_the_design_for_itself():
+    st = Study.from_dict({"name": "n", "repetitions": 3, "seed": 5,
+                          "factors": {"bin_scale": [0.5, 1.0, 2.0], "solver": ["lm-ad", "lm-fd"]},
+                          "cases": [{"problem": "three_patch"},
+                                    {"problem": "hidden_corner", "repetitions": 1, "time_limit": 60.0,
+                                     "factors": {"solver": ["ipopt-exact"]}}]})
+    cells = st.cells()
+    small = [c for c in cells if c["problem"] == "three_patch"]
+    big = [c for c in cells if c["problem"] == "hidden_corner"]
+    assert len(small) == 3 * 2 * 3 and len(big) == 3 * 1 * 1
+    # the case's own list replaces the study's for that case only; the others still cross
+    assert {c["solver"] for c in small} == {"lm-ad", "lm-fd"} and {c["solver"] for c in big} == {"ipopt-exact"}
+    assert {c["bin_scale"] for c in big} == {0.5, 1.0, 2.0}
+    assert {(c["repetition"], c["seed"]) for c in big} == {(0, 5)}
+    # the design keys are not factors of the cell
+    assert all("factors" not in c and "repetitions" not in c for c in cells)
+    assert {c.get("time_limit") for c in big} == {60.0} and all("time_limit" not in c for c in small)
+    for case, match in [({"problem": "three_patch", "repetitions": 0}, r"cases\[0\].repetitions"),
+                        ({"problem": "three_patch", "factors": {"solver": "lm-ad"}}, "non-empty list"),
+                        ({"problem": "three_patch", "factors": {"solver": ["newton"]}}, "got 'newton'"),
+                        ({"problem": "three_patch", "factors": ["solver"]}, "table of factor lists")]:
+        with pytest.raises(StudyError, match=match):
+            Study.from_dict({"name": "bad", "cases": [case]})
+    # the built-in accuracy-vs-time: every factor on the small problems, a few cells of the big
+    avt = load_study("accuracy-vs-time").cells()
+    per = {p: sum(c["problem"] == p for c in avt) for p in {c["problem"] for c in avt}}
+    assert per == {"three_patch": 180, "hidden_corner": 180, "three_planes": 4, "three_planes_occluded": 2}
+    assert load_study("accuracy-vs-time", "small").cells() == [c for c in avt if c["problem"] in
+                                                                ("three_patch", "hidden_corner")]
+
+
 def test_sizes_override_and_filter_cases():
     st = Study.from_dict(SPEC, size="small")
     assert len(st.cells()) == 2 and st.name == "t@small"
