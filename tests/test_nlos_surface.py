@@ -107,14 +107,55 @@ def test_pair_windows_longer_than_the_record_are_cut_exactly():
         model = SurfaceModel(grid, rl, Response("gaussian", 0.006, 0.0, ((0.03, 0.4),)), "lambertian")
         G = model._geometry(0, 5, model._local(z), False)[0]
         s = np.sqrt(0.006 ** 2 + G[..., 2])
-        n_win = model._windows(st, model.response(st), G[..., 1], G[..., 2], False, False)[1]
-        assert n_win <= T + 2
+        win = model._windows(st, model.response(st), G[..., 1], G[..., 2], False, False)
+        assert win["kk"].min() >= 0 and win["kk"].max() < T          # windows inside the record
+        assert np.bincount(win["pe"]).max() <= T
         out.append((model.predict(st), model, float(s.max())))
     (short, m_short, s_max), (long, _, _) = out
     assert 5.5 * s_max / 0.004 > 150                  # the cut is exercised
     assert np.allclose(short, long[:, :150], rtol=1e-12, atol=1e-15)
     lin = m_short.linearise(st, short, np.ones_like(short), dtype=np.float64)
     assert np.allclose(lin["m"], short, atol=1e-14)
+
+
+@pytest.mark.parametrize("kind, sub", [("gaussian", 2), ("emg", 1)])
+def test_ragged_windows_hold_every_bin_that_matters(kind, sub, monkeypatch):
+    """Each pair's own window (its delays plus the core's support at its own width) loses
+    nothing: the traces, gradient and Gauss-Newton matrix equal those of the same model whose
+    every window spans the whole record."""
+    from stircasadi.nlos.relay import Relay
+    from stircasadi.nlos.surface.model import SurfaceState
+    from stircasadi.nlos.surface.response import Response
+    rng = np.random.default_rng(3)
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-0.15, 0.15, 5), np.linspace(-0.1, 0.1, 4), frame)
+    L = np.c_[rng.uniform(-0.3, 0.3, (6, 2)), np.zeros(6)]
+    n = np.tile([0, 0, 1.0], (6, 1))
+    rl = Relay(np.zeros((6, 200)), TimeGrid(0.6, 0.004, 200), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+    tail = 0.01 if kind == "emg" else 0.0
+    resp = Response(kind, 0.005, tail, ((0.03, 0.3),))
+    z = 0.4 + 0.1 * grid.base_points()[:, 0] + 0.003 * rng.standard_normal(grid.n)
+    st = SurfaceState(z, rng.uniform(0.3, 1, grid.n), 0.005, tail, (0.3,), 0.01)
+    model = SurfaceModel(grid, rl, resp, "lambertian", subsamples=sub)
+    y = model.predict(st) + 1e-3 * rng.standard_normal((6, 200))
+    wgt = rng.uniform(0.5, 2, (6, 200))
+    G = model._geometry(0, 6, model._local(z), False)[0]
+    win = model._windows(st, model.response(st), G[..., 1], G[..., 2], False, False)
+    lengths = np.bincount(win["pe"])
+    assert lengths.max() < 200 and lengths.min() < lengths.max()     # windows differ and are short
+    ref = model.linearise(st, y, wgt, dtype=np.float64)
+    monkeypatch.setattr(Response, "support", lambda self, s_max: (np.full(np.shape(s_max), -10.0),
+                                                                  np.full(np.shape(s_max), 10.0)))
+    full = SurfaceModel(grid, rl, resp, "lambertian", subsamples=sub)
+    G = full._geometry(0, 6, full._local(z), False)[0]
+    assert np.all(np.bincount(full._windows(st, full.response(st), G[..., 1], G[..., 2], False,
+                                            False)["pe"]) == 200)
+    lin = full.linearise(st, y, wgt, dtype=np.float64)
+    # the core's support drops ~1e-7 of its mass (``Response.support``): that is the tolerance
+    scale = np.abs(ref["m"]).max()
+    assert np.abs(ref["m"] - lin["m"]).max() < 1e-8 * scale
+    assert np.abs(ref["g"] - lin["g"]).max() < 1e-6 * np.abs(lin["g"]).max()
+    assert np.abs(ref["H"] - lin["H"]).max() < 1e-6 * np.abs(lin["H"]).max()
 
 
 def test_response_shapes_against_convolutions_and_the_project_irf():

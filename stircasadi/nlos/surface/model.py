@@ -44,6 +44,38 @@ from .response import Response
 __all__ = ["SurfaceModel", "SurfaceState"]
 
 
+_JIT_DIR: list = []          # one temporary folder per process for the compiled pair functions
+
+
+def _compiled(f: ca.Function) -> ca.Function:
+    """``f`` compiled to machine code by CasADi's JIT (C through the system's compiler, -O2, no
+    fast-math: the same IEEE arithmetic; the map over (trace, node) pairs then runs 3-4x faster
+    than CasADi's SX virtual machine), or ``f`` itself where no compiler works (the result is the
+    same, only slower) or when the environment sets STIRCASADI_JIT=0."""
+    import os
+    if os.environ.get("STIRCASADI_JIT", "1") == "0":
+        return f
+    try:
+        if not _JIT_DIR:
+            import atexit
+            import shutil
+            import tempfile
+            d = tempfile.mkdtemp(prefix="stircasadi-jit-")
+            atexit.register(shutil.rmtree, d, True)
+            _JIT_DIR.append(d)
+        ins = f.sx_in()
+        return ca.Function(f.name(), ins, f.call(ins), {
+            "jit": True, "compiler": "shell", "jit_temp_suffix": True, "jit_cleanup": False,
+            "jit_options": {"flags": ["-O2"], "directory": _JIT_DIR[0], "cleanup": False}})
+    except Exception as exc:                        # no compiler, unwritable temp folder, ...
+        if not _JIT_DIR or _JIT_DIR[-1] != "warned":
+            import logging
+            logging.getLogger(__name__).info("CasADi JIT unavailable (%s); the pair geometry runs on "
+                                             "CasADi's virtual machine (same numbers, slower)", exc)
+            _JIT_DIR.append("warned")
+        return f
+
+
 def _gram_upper(J: np.ndarray) -> np.ndarray:
     """The upper triangle of J^T J (float64) by the symmetric rank-k update (BLAS syrk: half
     the products of a general matrix product), computed in J's precision; the lower triangle
@@ -196,18 +228,28 @@ class SurfaceModel:
         tau = relay_delay(L, D, X, q[15])
         c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx, hy)
         out = ca.vertcat(amp, tau, c2)
-        self.f_geo = ca.Function("pair_geometry", [p, q], [out])
-        self.f_geo_jac = ca.Function("pair_geometry_jac", [p, q], [ca.vertcat(out, ca.vec(ca.jacobian(out, p)))])
+        # the same function with q split into the sub-sample's own numbers nd = (Xb, dx, dy)
+        # and the trace's tr = (L, D, nL, nD, leg, gain): mapped over a trace's node samples with
+        # tr shared, then over the traces with p and nd shared, so the inputs are (6 + 5) x N S +
+        # 14 x traces numbers instead of 25 x traces x N S (converting those took longer than
+        # evaluating the map)
+        nd, tr = ca.SX.sym("nd", 5), ca.SX.sym("tr", 14)
+        q_of = ca.vertcat(nd[0:3], tr, nd[3:5])
+        jac = ca.vertcat(out, ca.vec(ca.jacobian(out, p)))
+        self.f_geo = _compiled(ca.Function("pair_geometry", [p, nd, tr], [ca.substitute(out, q, q_of)]))
+        self.f_geo_jac = _compiled(ca.Function("pair_geometry_jac", [p, nd, tr], [ca.substitute(jac, q, q_of)]))
         k = (np.arange(self.sub) + 0.5) / self.sub - 0.5
         dy, dx = np.meshgrid(k * self.grid.hy, k * self.grid.hx, indexing="ij")
         self.offsets = np.stack([dx.ravel(), dy.ravel()], axis=1)          # (S, 2)
 
-    def _mapped(self, K: int, jac: bool):
-        key = (K, jac)
+    def _mapped(self, n_samples: int, n_traces: int, jac: bool):
+        key = (n_samples, n_traces, jac)
         if key not in self._maps:
             if len(self._maps) > 8:
                 self._maps.clear()
-            self._maps[key] = (self.f_geo_jac if jac else self.f_geo).map(K)
+            f = self.f_geo_jac if jac else self.f_geo
+            inner = f.map("samples", "serial", n_samples, [2], [])        # tr shared
+            self._maps[key] = inner.map("traces", "serial", n_traces, [0, 1], [])   # p, nd shared
         return self._maps[key]
 
     def _geometry(self, t0: int, t1: int, loc, jac: bool):
@@ -217,21 +259,14 @@ class SurfaceModel:
         r, N = self.relay, self.N
         S = len(self.offsets)
         nt = t1 - t0
-        K = nt * N * S
         _, u, v, _ = self.grid.frame
-        Pm = np.empty((6, K))
-        for i, a in enumerate(loc):
-            Pm[i] = np.tile(np.repeat(a, S), nt)
-        Q = np.empty((19, K))
+        Pm = np.stack([np.repeat(a, S) for a in loc])                        # (6, N S)
         off = np.tile(self.offsets.T, (1, N))                                # (2, N S)
         Xb = np.repeat(self.base.T, S, axis=1) + off[0] * u[:, None] + off[1] * v[:, None]
-        Q[0:3] = np.tile(Xb, nt)
-        for a, arr in ((3, r.L), (6, r.D), (9, r.nL), (12, r.nD)):
-            Q[a:a + 3] = np.repeat(arr[t0:t1].T, N * S, axis=1)
-        Q[15] = np.repeat(r.leg[t0:t1], N * S)
-        Q[16] = np.repeat(r.gain[t0:t1], N * S)
-        Q[17:19] = np.tile(off, nt)
-        out = self._mapped(K, jac)(ca.DM(Pm), ca.DM(Q)).full()   # DM in: the fast conversion
+        nd = np.vstack([Xb, off])                                            # (5, N S)
+        tr = np.vstack([r.L[t0:t1].T, r.D[t0:t1].T, r.nL[t0:t1].T, r.nD[t0:t1].T,
+                        r.leg[t0:t1][None, :], r.gain[t0:t1][None, :]])      # (14, nt)
+        out = self._mapped(N * S, nt, jac)(Pm, nd, tr).full()               # (3 [+18], nt N S)
         vals = out[:3].T.reshape(nt * N, S, 3)
         if not jac:
             return vals, None
@@ -239,29 +274,45 @@ class SurfaceModel:
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
-        """One window of bins per pair (shared by its sub-samples) and the response on it:
-        k0 (K,), n_win, s (K, S), bin integrals B (K, S, n_win) and, with ``need_parts``,
-        (F, f, f'[, dF/dtail]) at the window's edges (K, S, n_win + 1)."""
+        """The bins each pair reaches (shared by its sub-samples), ragged: each pair p gets its
+        own window of n_p bins, from its earliest sub-sample delay plus the core's left support
+        to its latest plus the right support at the pair's own widest sub-sample, cut to the
+        record (bins outside it are dropped anyway; a bin's integral does not depend on the
+        window it sits in, so the cut is exact). One wide pair no longer lengthens every window.
+
+        Returns a dict: ``pe`` (E,) the pair of each window bin, ``kk`` (E,) its bin index,
+        ``s`` (K, S) the per-sample widths, ``B`` (E, S) the core's bin integrals and, with
+        ``need_parts``, ``dF`` / ``dF1`` [/ ``dFt``] (E, S): the bin differences of f, f'
+        [and dF/dtail] (their edge values differenced over each bin)."""
         s = np.sqrt(st.sigma ** 2 + c2)
-        lo, hi = resp.support(float(s.max()) if s.size else st.sigma)
+        K = tau.shape[0]
         w = self.w
+        lo, hi = resp.support(s.max(axis=1) if s.size else np.full(K, st.sigma))
         tmin, tmax = tau.min(axis=1), tau.max(axis=1)
         k0 = np.floor((tmin + lo - self.t_start) / w).astype(np.int64)
-        n_win = int(math.ceil((float(np.max(tmax - tmin, initial=0.0)) + hi - lo) / w)) + 2
-        if n_win > self.T:
-            # one pair's wide spread (a steep node's cell, far off its start) must not make every
-            # window longer than the record: windows starting at max(k0, 0) with T bins hold
-            # every bin inside the record that the longer ones did (the rest is masked anyway)
-            k0 = np.maximum(k0, 0)
-            n_win = self.T
-        j = np.arange(n_win + 1)
-        x = (self.t_start + (k0[:, None, None] + j[None, None, :]) * w - tau[:, :, None]
-             + resp.mode_offset())
+        n = np.ceil((tmax - tmin + hi - lo) / w).astype(np.int64) + 2
+        a = np.clip(k0, 0, self.T)
+        b = np.clip(k0 + n, 0, self.T)
+        n = b - a                                        # bins of each pair inside the record
+        ne = np.where(n > 0, n + 1, 0)                   # edges of each pair's window
+        eo = np.concatenate([[0], np.cumsum(ne)])
+        E_edge = int(eo[-1])
+        ep = np.repeat(np.arange(K), ne)                 # pair of each edge
+        je = np.arange(E_edge) - eo[ep]                  # edge offset inside its window
+        x = (self.t_start + (a[ep] + je)[:, None] * w - tau[ep] + resp.mode_offset())
+        se = s[ep]
+        # bin i of pair p: edges eo_p + i (left) and eo_p + i + 1 (right)
+        pe = np.repeat(np.arange(K), n)
+        left = eo[pe] + (np.arange(len(pe)) - np.repeat(np.concatenate([[0], np.cumsum(n)[:-1]]), n))
+        out = {"pe": pe, "kk": a[pe] + (left - eo[pe]), "s": s}
         if not need_parts:
-            F = resp.parts(x, s[:, :, None])[0]
-            return k0, n_win, s, np.diff(F, axis=2), None
-        parts = resp.parts(x, s[:, :, None], need_tail=need_tail)
-        return k0, n_win, s, np.diff(parts[0], axis=2), parts
+            F = resp.parts(x, se)[0]
+            out["B"] = F[left + 1] - F[left]
+            return out
+        parts = resp.parts(x, se, need_tail=need_tail)
+        for key, arr in zip(("B", "dF", "dF1", "dFt"), parts):
+            out[key] = arr[left + 1] - arr[left]
+        return out
 
     def _chunks(self, per_trace_bytes: int):
         nt = max(1, int(self.chunk_bytes // max(per_trace_bytes, 1)))
@@ -276,11 +327,11 @@ class SurfaceModel:
     def _core(self, st, resp, t0, t1, loc):
         """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
         G, _ = self._geometry(t0, t1, loc, False)
-        k0, n_win, _, Bw, _ = self._windows(st, resp, G[..., 1], G[..., 2], False, False)
-        val = np.einsum("ks,ksw->kw", G[..., 0], Bw) * np.tile(st.rho, t1 - t0)[:, None]
-        idx, ok = self._index(t0, t1, k0, n_win)
+        win = self._windows(st, resp, G[..., 1], G[..., 2], False, False)
+        pe = win["pe"]
+        val = np.einsum("es,es->e", G[..., 0][pe], win["B"]) * np.tile(st.rho, t1 - t0)[pe]
         nt = t1 - t0
-        return np.bincount(idx[ok] - t0 * self.T, val[ok], minlength=nt * self.T).reshape(nt, self.T)
+        return np.bincount(self._rows(pe, win["kk"]), val, minlength=nt * self.T).reshape(nt, self.T)
 
     def predict(self, st: SurfaceState) -> np.ndarray:
         """Model traces (P, T)."""
@@ -293,11 +344,10 @@ class SurfaceModel:
             out[t0:t1] = self.background(st, t0, t1)[0] + resp.tail_filter(G, self.w)
         return out
 
-    def _index(self, t0, t1, k0, n_win):
-        kk = k0[:, None] + np.arange(n_win)[None, :]
-        ok = (kk >= 0) & (kk < self.T)
-        tr = np.repeat(np.arange(t0, t1), self.N)[:, None]
-        return np.where(ok, tr * self.T + kk, 0), ok
+    def _rows(self, pe, kk):
+        """Chunk-local row (trace * T + bin) of window bins of pairs ``pe`` (pairs are ordered
+        trace-major, N per trace) at bins ``kk``."""
+        return (pe // self.N) * self.T + kk
 
     def linearise(self, st: SurfaceState, y: np.ndarray, wgt: np.ndarray, dtype=np.float32,
                   need_h: bool = True) -> dict:
@@ -322,15 +372,16 @@ class SurfaceModel:
             nt = t1 - t0
             G, Jg = self._geometry(t0, t1, lz, True)
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
-            k0, n_win, s, Bw, parts = self._windows(st, resp, tau, c2, True, need_tail)
-            dF, dF1 = np.diff(parts[1], axis=2), np.diff(parts[2], axis=2)  # (K, S, n_win)
-            rr = np.tile(rho, nt)[:, None, None]
-            Ar = A[:, :, None] * rr
-            idx, ok = self._index(t0, t1, k0, n_win)
-            rows_loc = idx[ok] - t0 * T
+            win = self._windows(st, resp, tau, c2, True, need_tail)
+            pe, Bw, dF, dF1 = win["pe"], win["B"], win["dF"], win["dF1"]   # (E,), (E, S)
+            s = win["s"][pe]
+            rr = np.tile(rho, nt)[pe][:, None]
+            Ae = A[pe]
+            Ar = Ae * rr
+            rows_loc = self._rows(pe, win["kk"])
 
-            def to_rows(v):          # (K, n_win) pair windows -> (nt, T) binned
-                return np.bincount(rows_loc, v[ok], minlength=nt * T).reshape(nt, T)
+            def to_rows(v):          # (E,) window bins -> (nt, T) binned
+                return np.bincount(rows_loc, v, minlength=nt * T).reshape(nt, T)
 
             Gc = to_rows(np.sum(Ar * Bw, axis=1))
             bgc, d_b1, d_bt = self.background(st, t0, t1)
@@ -339,15 +390,14 @@ class SurfaceModel:
             wc = wgt[t0:t1]
             m[t0:t1] = mc
             chi2 += float(np.sum(wc * rc * rc))
-            # local derivatives (K, n_win), summed over the sub-samples: the six patch unknowns, rho
-            sdF1 = s[:, :, None] * dF1
-            ds = Jg[:, :, 2, :] / (2.0 * s[:, :, None])                    # d s / d(patch)
-            loc = np.empty((7, len(k0), n_win))
+            # local derivatives (E,), summed over the sub-samples: the six patch unknowns, rho
+            sdF1 = s * dF1
+            ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 6)
+            loc = np.empty((7, len(pe)))
             for c in range(6):
-                term = rr * Jg[:, :, 0, c, None] * Bw + Ar * (sdF1 * ds[:, :, c, None]
-                                                             - dF * Jg[:, :, 1, c, None])
+                term = rr * Jg[:, :, 0, c][pe] * Bw + Ar * (sdF1 * ds[:, :, c][pe] - dF * Jg[:, :, 1, c][pe])
                 loc[c] = term.sum(axis=1)
-            loc[6] = np.sum(A[:, :, None] * Bw, axis=1)
+            loc[6] = np.sum(Ae * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
             pre, post = [], []
@@ -355,7 +405,7 @@ class SurfaceModel:
                 if name == "sigma":
                     pre.append(to_rows(np.sum(Ar * st.sigma * dF1, axis=1)) + dm[0] * shift)
                 elif name == "tail":
-                    pre.append(to_rows(np.sum(Ar * np.diff(parts[3], axis=2), axis=1)) + dm[1] * shift)
+                    pre.append(to_rows(np.sum(Ar * win["dFt"], axis=1)) + dm[1] * shift)
                 elif name.startswith("beta"):
                     i = int(name[4:])
                     from .response import exp_filter
@@ -369,18 +419,18 @@ class SurfaceModel:
             # the gradient in float64 (exact, whatever ``dtype``): the slow tails' adjoint first
             e = wc * rc
             ef = resp.tail_filter(e, w, adjoint=True)
-            node = np.broadcast_to(np.tile(np.arange(N), nt)[:, None], loc.shape[1:])[ok]
+            node = pe % N
             er = ef.ravel()[rows_loc]
-            gl = np.stack([np.bincount(node, loc[c][ok] * er, minlength=N) for c in range(7)])
+            gl = np.stack([np.bincount(node, loc[c] * er, minlength=N) for c in range(7)])
             g[:N] += gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
             g[N:2 * N] += gl[6]
             gcols = [float(np.sum(c * ef)) for c in pre] + [float(np.sum(c * e)) for c in post]
             g[2 * N:] += gcols
             if need_h:
-                H += self._gram(nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype)
+                H += self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype)
         return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}
 
-    def _gram(self, nt, rows_loc, node, loc, ok, pre, post, wc, resp, dtype) -> np.ndarray:
+    def _gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype) -> np.ndarray:
         """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
         Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
         time). Without slow tails only the rows some pair reaches are formed; the others carry
@@ -398,7 +448,7 @@ class SurfaceModel:
         Jd = np.zeros((R, 7 * N), dtype=dtype)
         flat = rmap[rows_loc] * (7 * N) + node
         for c in range(7):
-            Jd.ravel()[flat + c * N] = loc[c][ok]
+            Jd.ravel()[flat + c * N] = loc[c]
         Jz = Jd[:, :N].copy()
         for c in range(1, 6):
             Jz += (self.opsT[c] @ Jd[:, c * N:(c + 1) * N].T).T
