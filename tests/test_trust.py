@@ -329,3 +329,25 @@ def test_ipopt_step_failure_is_finished_by_gauss_newton():
     assert d["stages"]["joint"]["solver"] == "sparse-lm"   # the final fit is Gauss-Newton's
     assert d["stages"]["joint"]["success"]
     assert _right_or_flagged(d, cap.truth)[0] in ("OK", "FLAGGED")
+
+
+def test_coplanar_uncalibrated_heights_are_flagged():
+    """Ten patches on two walls, all in one plane with the source, no calibrated camera
+    (accuracy-vs-noise, lambertian_walls at 1e-5, seed 105): the distances fix the heights above
+    that plane only at second order, so the fit's heights (1-13 cm) come out of the noise with a
+    std (2-26 mm) that does not cover them (|err|/std 5.6). Before the flat-alternative check this
+    was success true (SILENT-WRONG); now it is flagged, while the check leaves a non-flat
+    uncalibrated scene (three_patch) and null positions (noise 1e-2) alone."""
+    from stircasadi.studies import load_study
+    from stircasadi.studies.cell import run_cell
+
+    cells = {(c["problem"], c["noise"], c["seed"]): c for c in load_study("accuracy-vs-noise").cells()}
+    rec = run_cell(cells[("lambertian_walls", 1e-05, 105)], keep_estimate=True)
+    m = rec["measures"]
+    checks = {c["name"]: c for c in rec["estimate"]["checks"]}
+    assert m["max_abs_z"] > 4                                   # the error the std do not cover
+    assert not checks["flat-alternative"]["passed"] and checks["flat-alternative"]["value"] < 10
+    assert m["verdict"] == "UNRELIABLE" and m["hard_verdict"] == "FLAGGED"
+    rec = run_cell(cells[("three_patch", 1e-05, 100)], keep_estimate=True)
+    checks = {c["name"]: c for c in rec["estimate"]["checks"]}
+    assert checks["flat-alternative"]["passed"] and checks["flat-alternative"]["value"] > 100

@@ -248,6 +248,9 @@ class CheckSettings:
     linearised rise (``checks._linearity``)."""
     linearity_max_dirs: int = 300
     """At most this many unknowns' directions are probed (evenly spread over x)."""
+    alternative_k: float = 10.0
+    """The ``flat-alternative`` check fails when every height of a near-flat uncalibrated
+    configuration is within this many of its std from zero (``checks._flat_alternative``)."""
 
     def validate(self) -> "CheckSettings":
         _positive("trace_p", self.trace_p)
@@ -255,6 +258,8 @@ class CheckSettings:
         _positive("reciprocity_k", self.reciprocity_k)
         if not self.linearity_k > 1.0:
             raise ModelError(f"linearity_k must be > 1 (a factor); got {self.linearity_k!r}.")
+        if not self.alternative_k > 0:
+            raise ModelError(f"alternative_k must be > 0 (sigma); got {self.alternative_k!r}.")
         if int(self.linearity_max_dirs) < 1:
             raise ModelError(f"linearity_max_dirs must be >= 1; got {self.linearity_max_dirs!r}.")
         return self
