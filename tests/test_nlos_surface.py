@@ -222,3 +222,27 @@ def test_estimate_capture_json_and_files(tilted_plane, tmp_path):
         estimate_capture(cap, method="nope")
     with pytest.raises(ReconstructionError, match="Unknown option"):
         estimate_capture(cap, method="lct", bogus=1)
+
+
+def test_compiled_pair_geometry_gives_the_same_numbers(monkeypatch):
+    """The pair geometry compiled by CasADi's JIT (where a C compiler works) and the same function
+    on CasADi's virtual machine (STIRCASADI_JIT=0, or no compiler) give the same traces."""
+    from stircasadi.nlos.relay import Relay
+    from stircasadi.nlos.surface.model import SurfaceState
+    from stircasadi.nlos.surface.response import Response
+    rng = np.random.default_rng(4)
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.1, 0.1, 3), frame)
+    L = np.c_[rng.uniform(-0.2, 0.2, (5, 2)), np.zeros(5)]
+    n = np.tile([0, 0, 1.0], (5, 1))
+    rl = Relay(np.zeros((5, 150)), TimeGrid(0.6, 0.004, 150), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+    st = SurfaceState(0.4 + 0.01 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, 0.0,
+                      (0.3,), 0.01)
+    resp = Response("gaussian", 0.006, 0.0, ((0.03, 0.3),))
+    out = []
+    for jit in ("1", "0"):
+        monkeypatch.setenv("STIRCASADI_JIT", jit)
+        m = SurfaceModel(grid, rl, resp, "lambertian", subsamples=2)
+        out.append(m.predict(st))
+    assert np.abs(out[1]).max() > 0
+    assert np.allclose(out[0], out[1], rtol=1e-12, atol=1e-15 * np.abs(out[1]).max())

@@ -108,7 +108,10 @@ def local_cluster(n_workers: int, memory_limit: str | None = None):
         os.environ.setdefault(k, v)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": dict(BLAS_ENV),
                           "distributed.worker.daemon": False, "logging.distributed": "error",
-                          "distributed.scheduler.allowed-failures": 0}):
+                          "distributed.scheduler.allowed-failures": 0,
+                          # one cell per worker thread at a time: a cell queued on a worker that
+                          # another cell kills (its memory limit) would be recorded as failed too
+                          "distributed.scheduler.worker-saturation": 1.0}):
         try:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                    host="127.0.0.1", dashboard_address=None, env=dict(BLAS_ENV),
