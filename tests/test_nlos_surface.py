@@ -118,20 +118,28 @@ def test_pair_windows_longer_than_the_record_are_cut_exactly():
     assert np.allclose(lin["m"], short, atol=1e-14)
 
 
+def _confocal_setup(rng, nx, ny, n_traces, wall, n_bins):
+    """A small depth grid ((nodes, half-width) per axis) over a confocal relay of ``n_traces``
+    random wall points within +-``wall`` m, ``n_bins`` bins of 4 mm from 0.6 m."""
+    from stircasadi.nlos.relay import Relay
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-nx[1], nx[1], nx[0]), np.linspace(-ny[1], ny[1], ny[0]), frame)
+    L = np.c_[rng.uniform(-wall, wall, (n_traces, 2)), np.zeros(n_traces)]
+    n = np.tile([0, 0, 1.0], (n_traces, 1))
+    rl = Relay(np.zeros((n_traces, n_bins)), TimeGrid(0.6, 0.004, n_bins), L, L.copy(), n, n, 0.0, 1.0,
+               confocal=True)
+    return grid, rl
+
+
 @pytest.mark.parametrize("kind, sub", [("gaussian", 2), ("emg", 1)])
 def test_ragged_windows_hold_every_bin_that_matters(kind, sub, monkeypatch):
     """Each pair's own window (its delays plus the core's support at its own width) loses
     nothing: the traces, gradient and Gauss-Newton matrix equal those of the same model whose
     every window spans the whole record."""
-    from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.model import SurfaceState
     from stircasadi.nlos.surface.response import Response
     rng = np.random.default_rng(3)
-    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
-    grid = DepthGrid(np.linspace(-0.15, 0.15, 5), np.linspace(-0.1, 0.1, 4), frame)
-    L = np.c_[rng.uniform(-0.3, 0.3, (6, 2)), np.zeros(6)]
-    n = np.tile([0, 0, 1.0], (6, 1))
-    rl = Relay(np.zeros((6, 200)), TimeGrid(0.6, 0.004, 200), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+    grid, rl = _confocal_setup(rng, (5, 0.15), (4, 0.1), 6, 0.3, 200)
     tail = 0.01 if kind == "emg" else 0.0
     resp = Response(kind, 0.005, tail, ((0.03, 0.3),))
     z = 0.4 + 0.1 * grid.base_points()[:, 0] + 0.003 * rng.standard_normal(grid.n)
@@ -227,15 +235,10 @@ def test_estimate_capture_json_and_files(tilted_plane, tmp_path):
 def test_compiled_pair_geometry_gives_the_same_numbers(monkeypatch):
     """The pair geometry compiled by CasADi's JIT (where a C compiler works) and the same function
     on CasADi's virtual machine (STIRCASADI_JIT=0, or no compiler) give the same traces."""
-    from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.model import SurfaceState
     from stircasadi.nlos.surface.response import Response
     rng = np.random.default_rng(4)
-    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
-    grid = DepthGrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.1, 0.1, 3), frame)
-    L = np.c_[rng.uniform(-0.2, 0.2, (5, 2)), np.zeros(5)]
-    n = np.tile([0, 0, 1.0], (5, 1))
-    rl = Relay(np.zeros((5, 150)), TimeGrid(0.6, 0.004, 150), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+    grid, rl = _confocal_setup(rng, (4, 0.1), (3, 0.1), 5, 0.2, 150)
     st = SurfaceState(0.4 + 0.01 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, 0.0,
                       (0.3,), 0.01)
     resp = Response("gaussian", 0.006, 0.0, ((0.03, 0.3),))
