@@ -154,8 +154,7 @@ class Study:
 
     def validate(self) -> "Study":
         """Check the design; raise ``StudyError`` naming what is wrong and the fix."""
-        if not isinstance(self.repetitions, int) or isinstance(self.repetitions, bool) or self.repetitions < 1:
-            raise StudyError(f"repetitions must be an integer >= 1; got {self.repetitions!r}.")
+        _check_repetitions("repetitions", self.repetitions)
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise StudyError(f"seed must be an integer >= 0; got {self.seed!r}.")
         bad = [m for m in self.measures if m not in MEASURES]
@@ -163,12 +162,7 @@ class Study:
             raise StudyError(f"Unknown measure(s) {bad}; measures are {', '.join(MEASURES)}.")
         if not (isinstance(self.sigma_limit, (int, float)) and self.sigma_limit > 0):
             raise StudyError(f"sigma_limit must be a number > 0; got {self.sigma_limit!r}.")
-        for k, v in self.factors.items():
-            if not isinstance(v, list) or not v:
-                raise StudyError(f"Factor {k!r} under [factors] must be a non-empty list of values; "
-                                 f"got {v!r}. A single value goes under [base].")
-            for x in v:
-                check_factor(k, x)
+        _check_factor_lists("[factors]", self.factors, "under [base]")
         for where, d in ([("base", self.base)] + [(f"cases[{i}]", c) for i, c in enumerate(self.cases)]
                          + [(f"exclude[{i}]", c) for i, c in enumerate(self.exclude)]):
             if not isinstance(d, dict):
@@ -245,20 +239,30 @@ def _apply_size(d: dict, over: dict) -> dict:
 _CASE_KEYS = ("factors", "repetitions")
 
 
-def _check_case_key(where: str, key: str, value) -> None:
-    if key == "repetitions":
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise StudyError(f"{where}.repetitions must be an integer >= 1; got {value!r}.")
-        return
-    if not isinstance(value, dict):
-        raise StudyError(f"{where}.factors must be a table of factor lists (factors.solver = "
-                         f"[\"ipopt-exact\"]); got {type(value).__name__}.")
-    for k, v in value.items():
+def _check_repetitions(where: str, value) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise StudyError(f"{where} must be an integer >= 1; got {value!r}.")
+
+
+def _check_factor_lists(where: str, factors: dict, single: str) -> None:
+    """Every factor under ``where`` is a non-empty list of allowed values (``single``: where a
+    single value goes instead)."""
+    for k, v in factors.items():
         if not isinstance(v, list) or not v:
-            raise StudyError(f"Factor {k!r} under {where}.factors must be a non-empty list of values; "
-                             f"got {v!r}. A single value goes in the case itself.")
+            raise StudyError(f"Factor {k!r} under {where} must be a non-empty list of values; "
+                             f"got {v!r}. A single value goes {single}.")
         for x in v:
             check_factor(k, x)
+
+
+def _check_case_key(where: str, key: str, value) -> None:
+    if key == "repetitions":
+        _check_repetitions(f"{where}.repetitions", value)
+    elif not isinstance(value, dict):
+        raise StudyError(f"{where}.factors must be a table of factor lists (factors.solver = "
+                         f"[\"ipopt-exact\"]); got {type(value).__name__}.")
+    else:
+        _check_factor_lists(f"{where}.factors", value, "in the case itself")
 
 
 def _check_cell(c: dict) -> None:
