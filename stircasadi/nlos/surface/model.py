@@ -44,7 +44,10 @@ from .response import Response
 __all__ = ["SurfaceModel", "SurfaceState"]
 
 
-_JIT_DIR: list = []          # one temporary folder per process for the compiled pair functions
+#: the JIT's state for this process: its temporary folder, whether a compile failed (then every
+#: later model uses the virtual machine without trying again), and the compiled functions by
+#: their serialised form (the models of one fit, and its levels' first predictions, share them)
+_JIT = {"dir": None, "unavailable": False, "done": {}}
 
 
 def _compiled(f: ca.Function) -> ca.Function:
@@ -53,27 +56,30 @@ def _compiled(f: ca.Function) -> ca.Function:
     than CasADi's SX virtual machine), or ``f`` itself where no compiler works (the result is the
     same, only slower) or when the environment sets STIRCASADI_JIT=0."""
     import os
-    if os.environ.get("STIRCASADI_JIT", "1") == "0":
+    if os.environ.get("STIRCASADI_JIT", "1") == "0" or _JIT["unavailable"]:
         return f
+    key = f.serialize()
+    if key in _JIT["done"]:
+        return _JIT["done"][key]
     try:
-        if not _JIT_DIR:
+        if _JIT["dir"] is None:
             import atexit
             import shutil
             import tempfile
-            d = tempfile.mkdtemp(prefix="stircasadi-jit-")
-            atexit.register(shutil.rmtree, d, True)
-            _JIT_DIR.append(d)
+            _JIT["dir"] = tempfile.mkdtemp(prefix="stircasadi-jit-")
+            atexit.register(shutil.rmtree, _JIT["dir"], True)
         ins = f.sx_in()
-        return ca.Function(f.name(), ins, f.call(ins), {
+        fc = ca.Function(f.name(), ins, f.call(ins), {
             "jit": True, "compiler": "shell", "jit_temp_suffix": True, "jit_cleanup": False,
-            "jit_options": {"flags": ["-O2"], "directory": _JIT_DIR[0], "cleanup": False}})
+            "jit_options": {"flags": ["-O2"], "directory": _JIT["dir"], "cleanup": False}})
     except Exception as exc:                        # no compiler, unwritable temp folder, ...
-        if not _JIT_DIR or _JIT_DIR[-1] != "warned":
-            import logging
-            logging.getLogger(__name__).info("CasADi JIT unavailable (%s); the pair geometry runs on "
-                                             "CasADi's virtual machine (same numbers, slower)", exc)
-            _JIT_DIR.append("warned")
+        import logging
+        logging.getLogger(__name__).info("CasADi JIT unavailable (%s); the pair geometry runs on "
+                                         "CasADi's virtual machine (same numbers, slower)", exc)
+        _JIT["unavailable"] = True
         return f
+    _JIT["done"][key] = fc
+    return fc
 
 
 def _gram_upper(J: np.ndarray) -> np.ndarray:
@@ -303,8 +309,9 @@ class SurfaceModel:
         se = s[ep]
         # bin i of pair p: edges eo_p + i (left) and eo_p + i + 1 (right)
         pe = np.repeat(np.arange(K), n)
-        left = eo[pe] + (np.arange(len(pe)) - np.repeat(np.concatenate([[0], np.cumsum(n)[:-1]]), n))
-        out = {"pe": pe, "kk": a[pe] + (left - eo[pe]), "s": s}
+        i = np.arange(len(pe)) - np.repeat(np.cumsum(n) - n, n)            # bin offset in its window
+        left = eo[pe] + i
+        out = {"pe": pe, "kk": a[pe] + i, "s": s}
         if not need_parts:
             F = resp.parts(x, se)[0]
             out["B"] = F[left + 1] - F[left]
