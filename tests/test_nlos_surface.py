@@ -190,6 +190,14 @@ def test_response_shapes_against_convolutions_and_the_project_irf():
     G, E = rng.random((3, 60)), rng.random((3, 60))
     assert np.sum(exp_filter(G, 0.03, 0.005) * E) == pytest.approx(np.sum(G * exp_filter(E, 0.03, 0.005, True)))
     assert exp_filter(np.eye(1, 600), 0.03, 0.005).sum() == pytest.approx(1.0, abs=1e-9)
+    # along a leading axis (the Jacobian's time axis) both tails run in one recursion: the same
+    # numbers as each tail's lfilter along that axis, forward and adjoint, in either precision
+    G3 = rng.standard_normal((4, 60, 5))
+    for adj in (False, True):
+        ref = 0.3 * G3 + 0.4 * exp_filter(G3, 0.03, 0.005, adj, 1) + 0.3 * exp_filter(G3, 0.1, 0.005, adj, 1)
+        np.testing.assert_allclose(slow.tail_filter(G3, 0.005, adj, axis=1), ref, rtol=0, atol=1e-13)
+        out32 = slow.tail_filter(G3.astype(np.float32), 0.005, adj, axis=1)
+        assert out32.dtype == np.float32 and np.max(np.abs(out32 - ref)) < 1e-5 * np.max(np.abs(ref))
     gauss = Response("gaussian", 0.006)
     left = np.linspace(-0.03, 0.03, 13)
     assert np.allclose(gauss.cdf_bins(left, 0.004), bin_integral(GaussianIRF.from_sigma(0.006), left, 0.004))

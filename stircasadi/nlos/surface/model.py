@@ -152,6 +152,9 @@ class SurfaceModel:
         # the six local unknowns of a node's patch (z, gx, gy, zxx, zyy, zxy) from the depths
         self.ops = [None, self.Gx, self.Gy, Dxx, Dyy, Dxy]
         self.opsT = [None] + [o.T.tocsr() for o in self.ops[1:]]
+        # the chain rule of the Jacobian in one sparse product: local columns (6 N) -> depths
+        import scipy.sparse as sp
+        self.ops_stack = sp.vstack([sp.identity(self.N, format="csr")] + self.ops[1:]).tocsr()
         self.base = grid.base_points()
         self.t_left = g.start + np.arange(self.T) * self.w
         self.direct = None if direct is None else np.asarray(direct, float)
@@ -449,20 +452,26 @@ class SurfaceModel:
             used = np.zeros(nt * T, bool)
             used[rows_loc] = True
             ru = np.flatnonzero(used)
+        import scipy.sparse as sp
         rmap = np.full(nt * T, -1)
         rmap[ru] = np.arange(len(ru))
         R = len(ru)
-        Jd = np.zeros((R, 7 * N), dtype=dtype)
-        flat = rmap[rows_loc] * (7 * N) + node
-        for c in range(7):
-            Jd.ravel()[flat + c * N] = loc[c]
-        Jz = Jd[:, :N].copy()
-        for c in range(1, 6):
-            Jz += (self.opsT[c] @ Jd[:, c * N:(c + 1) * N].T).T
-        cols = [Jz, Jd[:, 6 * N:]] + [c.ravel()[ru][:, None].astype(dtype) for c in pre]
-        del Jd, Jz
-        Jc = np.hstack(cols)
-        del cols
+        rows = rmap[rows_loc]
+        ng = len(pre)
+        Jc = np.zeros((R, 2 * N + ng), dtype=dtype)
+        # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
+        # (a pair's bin touches one node's six local unknowns), times the stacked operators
+        # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
+        # nodes' stencils allow); albedo columns: one entry per window bin
+        Jl = sp.csr_matrix((loc[:6].ravel(), (np.tile(rows, 6), (node[None] + N * np.arange(6)[:, None]).ravel())),
+                           shape=(R, 6 * N))
+        Jz = (Jl @ self.ops_stack).tocoo()
+        del Jl
+        Jc[Jz.row, Jz.col] = Jz.data
+        del Jz
+        Jc.ravel()[rows * (2 * N + ng) + N + node] = loc[6]
+        for i, c in enumerate(pre):
+            Jc[:, 2 * N + i] = c.ravel()[ru]
         if resp.slow:
             Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
         Jc = np.hstack([Jc] + [c.ravel()[ru][:, None].astype(dtype) for c in post])

@@ -201,6 +201,8 @@ class Response:
         deposits, bin width ``w``); ``adjoint`` applies its transpose."""
         if not self.slow:
             return G
+        if G.ndim > 1 and axis % G.ndim != G.ndim - 1:
+            return _fused_tails(G, self.slow, w, adjoint, axis)
         out = (1.0 - sum(b for _, b in self.slow)) * G
         for tau, beta in self.slow:
             out += beta * exp_filter(G, tau, w, adjoint, axis)
@@ -225,6 +227,37 @@ def exp_filter(G: np.ndarray, tau: float, w: float, adjoint: bool = False, axis:
         return np.flip(K0 * Gr + lfilter(b, a, Gr, axis=axis), axis)
     out = lfilter(b, a, G, axis=axis)
     out += K0 * G
+    return out
+
+
+def _fused_tails(G: np.ndarray, slow, w: float, adjoint: bool, axis: int) -> np.ndarray:
+    """``tail_filter`` along a leading ``axis`` (the Jacobian's time axis, (traces, bins,
+    columns)): every slow tail's recursion E_i(G)_k = K0 G_k + acc_k, acc_(k+1) = r acc_k + c G_k,
+    run together, one step per bin over the (traces, columns) slab (contiguous rows): the same
+    recursion as ``exp_filter``'s ``lfilter``, which along a non-last axis is ~3x slower per tail.
+    ``adjoint`` runs it from the last bin backwards (the transpose)."""
+    out = np.empty_like(G)
+    O, X = np.moveaxis(out, axis, 0), np.moveaxis(G, axis, 0)
+    rs, cs, bs = [], [], []
+    a0 = 1.0 - sum(b for _, b in slow)
+    for tau, beta in slow:
+        r = math.exp(-w / tau)
+        a0 += beta * (1.0 - (tau / w) * (1.0 - r))
+        rs.append(r)
+        cs.append((tau / w) * (1.0 - r) ** 2)
+        bs.append(beta)
+    acc = [np.zeros(X.shape[1:], G.dtype) for _ in slow]
+    tmp = np.empty(X.shape[1:], G.dtype)
+    n = X.shape[0]
+    for k in (range(n - 1, -1, -1) if adjoint else range(n)):
+        ok = O[k]
+        np.multiply(X[k], a0, out=ok)
+        for a, r, c, b in zip(acc, rs, cs, bs):
+            np.multiply(a, b, out=tmp)
+            ok += tmp
+            a *= r
+            np.multiply(X[k], c, out=tmp)
+            a += tmp
     return out
 
 
