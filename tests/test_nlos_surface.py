@@ -257,3 +257,63 @@ def test_compiled_pair_geometry_gives_the_same_numbers(monkeypatch):
         out.append(m.predict(st))
     assert np.abs(out[1]).max() > 0
     assert np.allclose(out[0], out[1], rtol=1e-12, atol=1e-15 * np.abs(out[1]).max())
+
+
+def test_discrepancy_weight_on_a_linear_problem_is_the_exact_one_from_any_start():
+    """``fit._choose_lambda`` on a linear least-squares problem y = J z + noise with a smooth z
+    and the second-difference prior: the weight it returns is the largest candidate whose exact
+    regularised solution (normal equations solved here) keeps chi^2 within
+    max(chi2_min, dof) (1 + 2 sqrt(2 / dof)); the next candidate exceeds it; and the answer is the
+    same from the least-squares solution and from a start far from it (the linearised minimiser
+    of chi^2 + lam z^T R z, not a step damped by lam)."""
+    from stircasadi.nlos.surface.fit import _choose_lambda
+
+    rng = np.random.default_rng(7)
+    N, n = 30, 240
+    t = np.linspace(0, 1, N)
+    J = rng.standard_normal((n, N)) @ np.diag(np.linspace(1.0, 0.02, N))   # ill-conditioned
+    z_true = np.sin(12 * t) + 0.5 * t
+    y = J @ z_true + rng.standard_normal(n)
+    D2 = np.diff(np.eye(N), 2, axis=0)
+    R = D2.T @ D2
+    H = J.T @ J
+    dof = n - N
+
+    def chi2(z):
+        return float(np.sum((J @ z - y) ** 2))
+
+    z_ls = np.linalg.solve(H, J.T @ y)
+    picks = []
+    for z0 in (z_ls, np.zeros(N), z_ls + 5.0):
+        g = J.T @ (J @ z0 - y)
+        lam, curve = _choose_lambda(H, g, chi2(z0), dof, R, N, 0.0, z0)
+        picks.append(lam)
+        exact = [(la, chi2(np.linalg.solve(H + la * R, J.T @ y))) for la, _ in curve]
+        np.testing.assert_allclose([c for _, c in curve], [c for _, c in exact], rtol=1e-6)
+    assert 0 < picks[0] < curve[-1][0] and picks[1] == picks[0] and picks[2] == picks[0]
+    target = max(chi2(z_ls), dof) * (1 + 2 * math.sqrt(2.0 / dof))
+    lams = [la for la, _ in curve]
+    k = lams.index(picks[0])
+    assert chi2(np.linalg.solve(H + lams[k] * R, J.T @ y)) <= target
+    assert chi2(np.linalg.solve(H + lams[k + 1] * R, J.T @ y)) > target
+
+
+def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
+    """prior="auto" over two levels: the coarse level's discrepancy weight (non-zero on the twin)
+    is the weight the fine level's first solve runs with (a fine level solved without a prior
+    grew albedo spikes on the 32 x 32 chart), and the tilted plane's depth stays within 1.5 mm."""
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+    from stircasadi.nlos.surface.grid import DepthGrid
+
+    cap, truth = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    res = fit_surface(relay, init, SurfaceSettings(n_nodes=10, levels=2, known_gain=True, sigma0=0.01,
+                                                   max_iter=20, prior="auto"), gate=0.2)
+    lam0 = res.levels[0]["lam_next"]
+    assert lam0 > 0 and res.levels[1]["solves"][0]["lam"] == lam0 and res.prior_weight > 0
+    zt = DepthGrid(truth["x"], truth["y"], res.grid.frame).resample(truth["depth"], res.grid).reshape(res.shape)
+    sel = res.mask & (np.abs(res.grid.x)[None] < 0.1) & (np.abs(res.grid.y)[:, None] < 0.1)
+    assert sel.sum() >= 12 and np.max(np.abs(res.depth - zt)[sel]) < 1.5e-3

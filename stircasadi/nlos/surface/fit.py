@@ -17,9 +17,12 @@ Steps
    at the initial surface; albedos are then relative (``albedo_relative``).
 4. Per level (coarse to fine, each started from the previous level's maps interpolated):
    the time window of the level's paths, then LM (``lm.py``) or IPOPT (``solve.py``) on the
-   level's NLP. With ``prior="auto"`` the smoothness weight at the last level is the largest
-   for which the linearised whitened chi^2 stays within max(chi2_min, dof) (1 + 2 sqrt(2 / dof))
-   (discrepancy principle), and the level is re-solved when the weight changed.
+   level's NLP. With ``prior="auto"`` the smoothness weight is chosen after each level's solve
+   as the largest for which the whitened chi^2 of the linearised regularised solution stays
+   within max(chi2_min, dof) (1 + 2 sqrt(2 / dof)) (discrepancy principle; ``_choose_lambda``);
+   a coarse level's weight starts the next level (the penalty approximates the integral of
+   (del^2 z)^2, independent of the spacing), and the last level is re-solved when its weight
+   moved by more than 3x.
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
@@ -137,26 +140,38 @@ def _window(relay: Relay, grid: DepthGrid, z0, resp_hi: Response, cell: float, p
     return relay.window(lo, hi_d + b + pad + slow_pad)
 
 
-def _choose_lambda(H, g, chi2, dof, R, N, lam_now):
-    """Discrepancy principle on the linearised problem at the current solution."""
+def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf):
+    """Discrepancy principle on the linearised problem at the current solution ``z``: for each
+    candidate weight lam, the linearised minimiser of chi^2 + lam z^T R z (step d from
+    (H + lam R) d = -(g + lam R z)) and its predicted data chi^2; the largest lam whose chi^2
+    stays within max(c_ref, dof) (1 + 2 sqrt(2 / dof)). c_ref, the best chi^2 the model reaches,
+    is the lowest prediction among the steps the linearisation holds for (depth changes within
+    ``slack``) and the chi^2 reached: on a fine grid whose solve has not converged the
+    unregularised Gauss-Newton step is metres long and its predicted chi^2 far below anything a
+    step reaches, which would leave no weight passing."""
     npar = H.shape[0]
     Rf = np.zeros_like(H)
     Rf[:N, :N] = R
+    th = np.zeros(npar)
+    if z is not None:
+        th[:N] = z
     hz = float(np.trace(H[:N, :N])) / max(np.trace(R), 1e-300)
     cands = np.concatenate([[0.0], hz * np.logspace(-8, 2, 41)])
     ridge = 1e-10 * float(np.trace(H)) / npar + 1e-300
-    out = []
+    out, valid = [], [chi2]
     for lam in cands:
         A = H + lam * Rf + ridge * np.eye(npar)
         try:
-            dlt = -np.linalg.solve(A, g + (lam - lam_now) * 0.0)
+            dlt = -np.linalg.solve(A, g + lam * (Rf @ th))
         except np.linalg.LinAlgError:
             continue
-        out.append((lam, chi2 + 2 * g @ dlt + dlt @ H @ dlt))
+        c = chi2 + 2 * g @ dlt + dlt @ H @ dlt
+        out.append((lam, c))
+        if float(np.max(np.abs(dlt[:N]))) <= slack:
+            valid.append(c)
     if not out:
         return lam_now, []
-    c_min = min(c for _, c in out)
-    target = max(c_min, dof) * (1 + 2 * math.sqrt(2.0 / max(dof, 1)))
+    target = max(min(valid), dof) * (1 + 2 * math.sqrt(2.0 / max(dof, 1)))
     ok = [lam for lam, c in out if c <= target]
     return (max(ok) if ok else 0.0), out
 
@@ -238,7 +253,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         info = {"nodes": n, "rows": int(y.size), "traces": int(rl.n_traces), "subsamples": sub,
                 "solves": []}
         t_lvl = time.perf_counter()
-        for rep in range(2 if (st.prior == "auto" and last) else 1):
+        auto = st.prior == "auto"
+        for rep in range(2 if (auto and last) else 1):
             if st.solver == "lm":
                 res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype)
             else:
@@ -249,12 +265,21 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                                      "betas": list(state.betas)})
             _log.info("level %d (%dx%d) solve: %s, %d it, f=%.6g, lam=%.3g, sigma=%.4g, tail=%.4g",
                       li, n, n, res["status"], res["iterations"], res["f"], lam, state.sigma, state.tail)
-            if st.prior != "auto" or not last:
+            if not auto:
                 break
             lin = model.linearise(state, y, wgt, dtype=np.float64)
             dof = max(int(y.size) - model.npar, 1)
-            new_lam, curve = _choose_lambda(lin["H"], lin["g"], lin["chi2"], dof, R, grid.n, lam)
+            new_lam, curve = _choose_lambda(lin["H"], lin["g"], lin["chi2"], dof, R, grid.n, lam,
+                                               state.z, 4.0 * slack)
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
+            if not last:
+                # the penalty sum (Lap z / h)^2 h^2 approximates the integral of (del^2 z)^2 over
+                # the extent whatever the spacing, so a coarse level's weight starts the next one
+                # (a fine level solved without a prior is ill-posed: nodes the traces barely
+                # separate trade depth against albedo and grow spikes)
+                info["lam_next"] = float(new_lam)
+                lam = new_lam
+                break
             if rep == 0 and (new_lam > 3 * lam or new_lam < lam / 3) and not (new_lam == 0 and lam == 0):
                 lam = new_lam
                 continue
