@@ -269,17 +269,25 @@ class SurfaceModel:
         S = len(self.offsets)
         nt = t1 - t0
         _, u, v, _ = self.grid.frame
-        Pm = np.stack([np.repeat(a, S) for a in loc])                        # (6, N S)
-        off = np.tile(self.offsets.T, (1, N))                                # (2, N S)
-        Xb = np.repeat(self.base.T, S, axis=1) + off[0] * u[:, None] + off[1] * v[:, None]
-        nd = np.vstack([Xb, off])                                            # (5, N S)
-        tr = np.vstack([r.L[t0:t1].T, r.D[t0:t1].T, r.nL[t0:t1].T, r.nD[t0:t1].T,
-                        r.leg[t0:t1][None, :], r.gain[t0:t1][None, :]])      # (14, nt)
-        out = self._mapped(N * S, nt, jac)(Pm, nd, tr).full()               # (3 [+18], nt N S)
-        vals = out[:3].T.reshape(nt * N, S, 3)
+        # CasADi's dense matrices are column-major: a (rows, cols) input is a C-ordered
+        # (cols, rows) NumPy array, handed over and filled in place through the function's
+        # buffer (converting to and from DM took longer than the compiled map itself)
+        Pm = np.ascontiguousarray(np.repeat(np.stack(loc, axis=1), S, axis=0))     # (N S, 6)
+        off = np.tile(self.offsets, (N, 1))                                        # (N S, 2)
+        Xb = np.repeat(self.base, S, axis=0) + off[:, :1] * u[None] + off[:, 1:] * v[None]
+        nd = np.ascontiguousarray(np.hstack([Xb, off]))                            # (N S, 5)
+        tr = np.ascontiguousarray(np.hstack([r.L[t0:t1], r.D[t0:t1], r.nL[t0:t1], r.nD[t0:t1],
+                                             r.leg[t0:t1, None], r.gain[t0:t1, None]]))  # (nt, 14)
+        out = np.empty((nt * N * S, 21 if jac else 3))
+        buf, run = self._mapped(N * S, nt, jac).buffer()
+        for i, a in enumerate((Pm, nd, tr)):
+            buf.set_arg(i, memoryview(a))
+        buf.set_res(0, memoryview(out))
+        run()
+        vals = out[:, :3].reshape(nt * N, S, 3)
         if not jac:
             return vals, None
-        return vals, out[3:].T.reshape(nt * N, S, 6, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
+        return vals, out[:, 3:].reshape(nt * N, S, 6, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
@@ -316,7 +324,7 @@ class SurfaceModel:
         left = eo[pe] + i
         out = {"pe": pe, "kk": a[pe] + i, "s": s}
         if not need_parts:
-            F = resp.parts(x, se)[0]
+            F = resp.cdf(x, se)
             out["B"] = F[left + 1] - F[left]
             return out
         parts = resp.parts(x, se, need_tail=need_tail)
@@ -401,12 +409,14 @@ class SurfaceModel:
             m[t0:t1] = mc
             chi2 += float(np.sum(wc * rc * rc))
             # local derivatives (E,), summed over the sub-samples: the six patch unknowns, rho
-            sdF1 = s * dF1
+            #   d m / d p_c = sum_s rho B dA_c + rho A (s dF1 ds_c - dF dtau_c): the window bins'
+            #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
             ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 6)
+            Q = np.hstack([rr * Bw, Ar * (s * dF1), -Ar * dF])
             loc = np.empty((7, len(pe)))
             for c in range(6):
-                term = rr * Jg[:, :, 0, c][pe] * Bw + Ar * (sdF1 * ds[:, :, c][pe] - dF * Jg[:, :, 1, c][pe])
-                loc[c] = term.sum(axis=1)
+                Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
+                loc[c] = np.einsum("ej,ej->e", Q, Cc[pe])
             loc[6] = np.sum(Ae * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0

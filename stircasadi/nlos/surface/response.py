@@ -132,6 +132,13 @@ class Response:
         Ft = -(f * (x / tau - (s / tau) ** 2) + ph * s / tau ** 2)
         return F, f, f1, Ft
 
+    def cdf(self, x, s):
+        """The core's F alone (``parts``' first output, without its densities)."""
+        x = np.asarray(x, float)
+        s = np.asarray(s, float)
+        F = ndtr(x / s)
+        return F if self.kind == "gaussian" else F - _emg_T(x, s, self.tail)
+
     def cdf_bins(self, left, width: float, s: float | None = None) -> np.ndarray:
         """The core's bin integrals F(left + width) - F(left) at bin left edges ``left``
         relative to the path length (the mode's shift applied)."""
