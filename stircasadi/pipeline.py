@@ -97,7 +97,10 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
         return _relay(capture, view, t0, method, out_dir)
     if method not in (None, "joint"):
         raise ModelError(f"method={method!r} is for relay-wall scans (paired or rectified traces); "
-                         "a full STIR with its legs is estimated by the joint fit (method=None).")
+                         "a full STIR with its legs is estimated by the joint fit (method=None). "
+                         "A hidden surface behind its visible patches (Fig. 13) is reconstructed by "
+                         "the library call stircasadi.nlos.stir_surface.hidden_surface_from_stir "
+                         "(visible patches given, e.g. from this estimate's visible patches).")
     from .geometry import estimate_geometry
     from .joint.checks import identifiability_check, run_checks
     from .joint.budget import Budget

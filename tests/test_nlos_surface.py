@@ -299,9 +299,10 @@ def test_discrepancy_weight_on_a_linear_problem_is_the_exact_one_from_any_start(
 
 
 def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
-    """prior="auto" over two levels: the coarse level's discrepancy weight (non-zero on the twin)
-    is the weight the fine level's first solve runs with (a fine level solved without a prior
-    grew albedo spikes on the 32 x 32 chart), and the tilted plane's depth stays within 1.5 mm."""
+    """prior="auto" over three levels: each coarse level's discrepancy weight (non-zero on the
+    twin) is the weight the next level's solve runs with (a fine level solved without a prior
+    grew albedo spikes on the 32 x 32 chart), the last level's weight is chosen at its own start
+    and used, and the tilted plane's depth stays within 1.5 mm."""
     from stircasadi.nlos import VolumeSettings, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
     from stircasadi.nlos.surface.grid import DepthGrid
@@ -310,10 +311,13 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
     relay = from_capture(cap)
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    res = fit_surface(relay, init, SurfaceSettings(n_nodes=10, levels=2, known_gain=True, sigma0=0.01,
+    res = fit_surface(relay, init, SurfaceSettings(n_nodes=10, levels=3, known_gain=True, sigma0=0.01,
                                                    max_iter=20, prior="auto"), gate=0.2)
-    lam0 = res.levels[0]["lam_next"]
-    assert lam0 > 0 and res.levels[1]["solves"][0]["lam"] == lam0 and res.prior_weight > 0
+    lv = res.levels
+    assert [l["nodes"] for l in lv] == [4, 5, 10]
+    assert lv[0]["solves"][0]["lam"] == 0.0 and lv[0]["lam_next"] > 0
+    assert lv[1]["solves"][0]["lam"] == lv[0]["lam_next"] and lv[1]["lam_next"] > 0
+    assert lv[2]["lam_start"] > 0 and lv[2]["solves"][0]["lam"] == lv[2]["lam_start"] and res.prior_weight > 0
     zt = DepthGrid(truth["x"], truth["y"], res.grid.frame).resample(truth["depth"], res.grid).reshape(res.shape)
     sel = res.mask & (np.abs(res.grid.x)[None] < 0.1) & (np.abs(res.grid.y)[:, None] < 0.1)
     assert sel.sum() >= 12 and np.max(np.abs(res.depth - zt)[sel]) < 1.5e-3

@@ -254,6 +254,15 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 "solves": []}
         t_lvl = time.perf_counter()
         auto = st.prior == "auto"
+        if auto and last and li > 0:
+            # the last level's weight from its own start (the coarse level's weight reflects the
+            # coarse grid's misfit): one linearisation instead of a second solve when it moves
+            lin = model.linearise(state, y, wgt, dtype=np.float64)
+            lam_start, _ = _choose_lambda(lin["H"], lin["g"], lin["chi2"], max(int(y.size) - model.npar, 1),
+                                          R, grid.n, lam, state.z, 4.0 * slack)
+            info["lam_start"] = float(lam_start)
+            lam = lam_start
+            del lin
         for rep in range(2 if (auto and last) else 1):
             if st.solver == "lm":
                 res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype)
