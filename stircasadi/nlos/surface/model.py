@@ -18,10 +18,13 @@ the relay's own (direct) return q_p is given, that return's slow decay (b1 and t
 Structure used for speed (the brief of issue 13: "profile first"). Every (trace, node) pair
 needs only three geometric numbers (A, tau, c^2) and their derivatives with respect to the
 node's patch (z, gx, gy, zxx, zyy, zxy): one small CasADi SX function, mapped over the pairs
-(and cell sub-samples) of a chunk of traces.
+(and cell sub-samples) of a chunk of traces, compiled by CasADi's JIT where a compiler works
+and called through its buffer (NumPy arrays in and out, no DM conversion).
 The response then fills a window of bins per pair in NumPy (its value and derivatives come from
 F, f and f' at the window's bin edges), and the chunk's Jacobian rows are assembled densely
-over (z, rho, globals) with the chain rule through the sparse difference operators. The
+over (z, rho, globals); the chain rule through the sparse difference operators is one sparse
+product (window bins x local unknowns, times the stacked operators), and the slow tails run
+along the Jacobian's time axis as one recursion for all tails. The
 Gauss-Newton matrix is a sum of per-chunk products J^T W J (BLAS; float32 for the solver's
 steps, float64 for the Fisher covariance); without slow tails, rows that no pair reaches only
 carry the background; with them, Phi is applied to the chunk's columns along time.
@@ -34,6 +37,7 @@ from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
 from ...errors import ReconstructionError
 from ..relay import Relay
@@ -153,7 +157,6 @@ class SurfaceModel:
         self.ops = [None, self.Gx, self.Gy, Dxx, Dyy, Dxy]
         self.opsT = [None] + [o.T.tocsr() for o in self.ops[1:]]
         # the chain rule of the Jacobian in one sparse product: local columns (6 N) -> depths
-        import scipy.sparse as sp
         self.ops_stack = sp.vstack([sp.identity(self.N, format="csr")] + self.ops[1:]).tocsr()
         self.base = grid.base_points()
         self.t_left = g.start + np.arange(self.T) * self.w
@@ -462,7 +465,6 @@ class SurfaceModel:
             used = np.zeros(nt * T, bool)
             used[rows_loc] = True
             ru = np.flatnonzero(used)
-        import scipy.sparse as sp
         rmap = np.full(nt * T, -1)
         rmap[ru] = np.arange(len(ru))
         R = len(ru)
