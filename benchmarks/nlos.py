@@ -5,8 +5,9 @@ a table and writes benchmarks/results/nlos.json.
     PYTHONPATH=. <venv with y-tal>/bin/python benchmarks/nlos.py    # y-tal needs numpy < 2
     python benchmarks/nlos.py --no-ytal [--surface 8,16,32] [--charts resolution,dot]
 
-Peak memory is tracemalloc's peak of Python/NumPy allocations during the call (y-tal and ours
-alike; CasADi's own small buffers are not counted). Depth: median depth of the columns whose
+Peak memory of the volumes is tracemalloc's peak of Python/NumPy allocations during the call
+(y-tal and ours alike); the surface fit runs in its own process per grid size, timed without
+tracemalloc, its memory the process's maximum resident set. Depth: median depth of the columns whose
 volume maximum exceeds 30 % of the brightest (y-tal's volumes read with the same Maps code).
 y-tal's bp is run on a 16 x 16 x 61 volume (2.4 GiB; its 32 x 32 x 121 volume needs ~15 GiB),
 ours on the same grid and on 32 x 32 x 121 and 64 x 64 x 121. The surface fit runs on the
@@ -20,6 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
+import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -97,6 +100,29 @@ def plane_of(s):
     return plane_fit(s.points()[s.mask], s.albedo[s.mask])
 
 
+def surface_row(n: int, prior: str) -> dict:
+    """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
+    the process's maximum resident memory, the albedo-weighted plane through the mask."""
+    import resource
+
+    cap = read_stanford_lct(data_dir() / "otoole2018_confocal" / CHARTS["resolution"])
+    levels = max(1, int(round(math.log2(n / 8))) + 1)
+    t0 = time.perf_counter()
+    est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
+                           wall_step=4, n_nodes=n, levels=levels, max_iter=12,
+                           prior=prior if prior in ("auto", "none") else float(prior))
+    dt = time.perf_counter() - t0
+    s = est.surface
+    z0, tilt = plane_of(s)
+    return {"chart": "resolution", "method": f"surface {n}x{n}", "time_s": dt,
+            "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, "peak_kind": "max RSS",
+            "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
+            "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
+            "prior": prior, "prior_weight": s.prior_weight, "success": s.success,
+            "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
+                        "wall_time_s": lv["wall_time_s"]} for lv in s.levels]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--charts", default="resolution,dot")
@@ -105,7 +131,11 @@ def main(argv=None):
     ap.add_argument("--surface", default="8,16,32", help="surface grid sizes (nodes per side)")
     ap.add_argument("--prior", default="auto", help="the surface fit's smoothness prior: auto "
                     "(discrepancy principle, default), none, or a weight")
+    ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.surface_one is not None:
+        print(json.dumps(surface_row(a.surface_one, a.prior)))
+        return
     rows = []
     folder = data_dir() / "otoole2018_confocal"
 
@@ -145,20 +175,16 @@ def main(argv=None):
                     print(rows[-1], flush=True)
     f = folder / CHARTS["resolution"]
     if f.exists():
-        cap = read_stanford_lct(f)
         for n in [int(x) for x in a.surface.split(",") if x]:
-            levels = max(1, int(round(math.log2(n / 8))) + 1)
-            est, dt, gib = measure(lambda: estimate_capture(
-                cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72, wall_step=4,
-                n_nodes=n, levels=levels, max_iter=12,
-                prior=a.prior if a.prior in ("auto", "none") else float(a.prior)))
-            s = est.surface
-            z0, tilt = plane_of(s)
-            rows.append({"chart": "resolution", "method": f"surface {n}x{n}", "time_s": dt, "peak_gib": gib,
-                         "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
-                         "prior": a.prior, "prior_weight": s.prior_weight, "success": s.success,
-                         "levels": [{"nodes": lv["nodes"], "iterations": lv["solves"][-1]["iterations"],
-                                     "wall_time_s": lv["wall_time_s"]} for lv in s.levels]})
+            # each size in its own process: the time without tracemalloc (which slows the fit's
+            # many NumPy allocations several-fold) and the process's maximum resident memory
+            # (CasADi's buffers included)
+            out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior],
+                                 capture_output=True, text=True)
+            if out.returncode != 0:
+                print(f"surface {n}x{n} failed:\n{out.stderr[-2000:]}")
+                continue
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
             print(rows[-1], flush=True)
     print(f"\n{'chart':<11}{'method':<20}{'time s':>9}{'peak GiB':>10}{'depth m':>10}")
     for r in rows:
