@@ -21,8 +21,8 @@ Steps
    as the largest for which the whitened chi^2 of the linearised regularised solution stays
    within max(chi2_min, dof) (1 + 2 sqrt(2 / dof)) (discrepancy principle; ``_choose_lambda``);
    a coarse level's weight starts the next level (the penalty approximates the integral of
-   (del^2 z)^2, independent of the spacing), and the last level is re-solved when its weight
-   moved by more than 3x.
+   (del^2 z)^2, independent of the spacing); the last level's weight is chosen at its own start
+   and checked after its solve, which is repeated when the weight moved by more than 3x.
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
@@ -282,7 +282,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                                                state.z, 4.0 * slack)
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
             if not last:
-                # the penalty sum (Lap z / h)^2 h^2 approximates the integral of (del^2 z)^2 over
+                # the penalty sum (Lap z / h)^2 (Lap: unit-spacing stencil, ~ h^2 del^2 z) is the
+                # integral of (del^2 z)^2 over
                 # the extent whatever the spacing, so a coarse level's weight starts the next one
                 # (a fine level solved without a prior is ill-posed: nodes the traces barely
                 # separate trade depth against albedo and grow spikes)
