@@ -12,8 +12,8 @@ volume maximum exceeds 30 % of the brightest (y-tal's volumes read with the same
 y-tal's bp is run on a 16 x 16 x 61 volume (2.4 GiB; its 32 x 32 x 121 volume needs ~15 GiB),
 ours on the same grid and on 32 x 32 x 121 and 64 x 64 x 121. The surface fit runs on the
 resolution chart (wall_step 4: 16 x 16 traces of 16 ps, the measured response and background
-decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps; the smoothness
-prior's weight by the discrepancy principle (``--prior auto``: without a prior a 32 x 32 grid
+decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps; ``--prior auto``
+sets the smoothness prior's weight by the discrepancy principle (without a prior a 32 x 32 grid
 over 16 x 16 traces is ill-posed).
 """
 from __future__ import annotations
@@ -129,8 +129,8 @@ def main(argv=None):
     ap.add_argument("--no-ytal", action="store_true")
     ap.add_argument("--no-bp", action="store_true", help="skip the backprojections")
     ap.add_argument("--surface", default="8,16,32", help="surface grid sizes (nodes per side)")
-    ap.add_argument("--prior", default="auto", help="the surface fit's smoothness prior: auto "
-                    "(discrepancy principle, default), none, or a weight")
+    ap.add_argument("--prior", default="none", help="the surface fit's smoothness prior: none "
+                    "(default), auto (discrepancy principle), or a weight")
     ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.surface_one is not None:
