@@ -277,8 +277,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
             if not last:
                 # the penalty sum (Lap z / h)^2 (Lap: unit-spacing stencil, ~ h^2 del^2 z) is the
-                # integral of (del^2 z)^2 over
-                # the extent whatever the spacing, so a coarse level's weight starts the next one
+                # integral of (del^2 z)^2 over the extent whatever the spacing, so a coarse
+                # level's weight starts the next one
                 # (a fine level solved without a prior is ill-posed: nodes the traces barely
                 # separate trade depth against albedo and grow spikes)
                 info["lam_next"] = float(new_lam)

@@ -222,11 +222,15 @@ class Response:
         return core + slow + " (mode-centred)"
 
 
+def _exp_coefficients(tau: float, w: float) -> tuple[float, float, float]:
+    """(r, K0, c) of the module docstring's filter E for tail ``tau`` and bin width ``w``."""
+    r = math.exp(-w / tau)
+    return r, 1.0 - (tau / w) * (1.0 - r), (tau / w) * (1.0 - r) ** 2
+
+
 def exp_filter(G: np.ndarray, tau: float, w: float, adjoint: bool = False, axis: int = -1) -> np.ndarray:
     """E(G) of the module docstring along ``axis`` (``adjoint``: its transpose)."""
-    r = math.exp(-w / tau)
-    K0 = 1.0 - (tau / w) * (1.0 - r)
-    c = (tau / w) * (1.0 - r) ** 2
+    r, K0, c = _exp_coefficients(tau, w)
     dt = G.dtype if G.dtype in (np.float32, np.float64) else np.float64
     b, a = np.array([0.0, c], dt), np.array([1.0, -r], dt)
     if adjoint:
@@ -248,10 +252,10 @@ def _fused_tails(G: np.ndarray, slow, w: float, adjoint: bool, axis: int) -> np.
     rs, cs, bs = [], [], []
     a0 = 1.0 - sum(b for _, b in slow)
     for tau, beta in slow:
-        r = math.exp(-w / tau)
-        a0 += beta * (1.0 - (tau / w) * (1.0 - r))
+        r, K0, c = _exp_coefficients(tau, w)
+        a0 += beta * K0
         rs.append(r)
-        cs.append((tau / w) * (1.0 - r) ** 2)
+        cs.append(c)
         bs.append(beta)
     acc = [np.zeros(X.shape[1:], G.dtype) for _ in slow]
     tmp = np.empty(X.shape[1:], G.dtype)
