@@ -74,6 +74,10 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     method : relay-wall scans only: ``"relay"`` (default: the first hidden point and plane from
         onsets), or ``"lct"``, ``"fk"``, ``"bp"``, ``"surface"`` (``stircasadi.nlos``: volumes and
         a fitted hidden surface, written to ``out_dir`` with their maps, mesh and pictures).
+        A full STIR with legs: ``None`` / ``"joint"`` (the joint fit), or ``"surface"`` (the joint
+        fit of the visible patches, then the hidden surface from their third bounce:
+        ``nlos.stir_estimate``; the surface fit itself is not stopped by ``time_limit``, it is
+        skipped when the joint fit used the limit up).
     time_limit : wall-clock seconds for the whole estimate (overrides ``settings.time_limit``):
         where it runs out the stages left are skipped and the result is the last converged fit,
         flagged UNRELIABLE by the ``time-limit`` check (``stircasadi.joint.budget``).
@@ -95,12 +99,18 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     view = CaptureView.of(capture, _priors(areas, flatland))
     if capture.stir is None or not capture.legs_included:
         return _relay(capture, view, t0, method, out_dir)
-    if method not in (None, "joint"):
+    if method not in (None, "joint", "surface"):
         raise ModelError(f"method={method!r} is for relay-wall scans (paired or rectified traces); "
-                         "a full STIR with its legs is estimated by the joint fit (method=None). "
-                         "A hidden surface behind its visible patches (Fig. 13) is reconstructed by "
-                         "the library call stircasadi.nlos.stir_surface.hidden_surface_from_stir "
-                         "(visible patches given, e.g. from this estimate's visible patches).")
+                         "a full STIR with its legs is estimated by the joint fit (method=None or "
+                         "'joint'), or by the joint fit of its visible patches followed by the hidden "
+                         "surface behind them from their third bounce (method='surface', Fig. 13; "
+                         "library: stircasadi.nlos.stir_surface.hidden_surface_from_stir).")
+    if method == "surface":
+        if hidden not in (None, 0):
+            raise ModelError(f"method='surface' fits the hidden part as one surface; hidden={hidden} hidden "
+                             "patches cannot be placed as well. Leave hidden unset (or 0), or use "
+                             "method='joint' to place hidden point patches.")
+        hidden = 0
     from .geometry import estimate_geometry
     from .joint.checks import identifiability_check, run_checks
     from .joint.budget import Budget
@@ -170,7 +180,13 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     }
     from .report import jsonable
 
-    return EstimateResult(jsonable(out), geometry=geo, fit=fit, view=view)
+    res = EstimateResult(jsonable(out), geometry=geo, fit=fit, view=view)
+    if method == "surface":
+        from .nlos.stir_estimate import add_stir_surface
+
+        left = None if not settings.time_limit else settings.time_limit - (time.perf_counter() - t0)
+        res = add_stir_surface(res, capture, out_dir=out_dir, time_left=left)
+    return res
 
 
 def _second_bounce_pairs(view, geo, X) -> np.ndarray:

@@ -175,7 +175,9 @@ def add_parsers(sub) -> list:
     e.add_argument("--method", choices=["joint", "relay", *NLOS_METHODS], default=None,
                    help="estimator (default: 'joint' for a full STIR with its source and camera legs, "
                         "'relay' for relay-wall scans); relay-wall scans also take 'lct', 'fk', 'bp' "
-                        "(volumes) or 'surface' (a fitted hidden surface)")
+                        "(volumes) or 'surface' (a fitted hidden surface); a full STIR also takes "
+                        "'surface' (the visible patches' joint fit, then the hidden surface behind "
+                        "them from their third bounce, as in the paper's Fig. 13)")
     e.add_argument("--maps", type=Path, default=None,
                    help="folder for the volumes, maps, mesh and pictures of --method lct|fk|bp|surface "
                         "(default: OUT_nlos beside the estimate)")
