@@ -20,6 +20,17 @@ Steps of :func:`add_stir_surface`
    visible fit and the surface fit pass. A visible fit that fails leaves second-bounce residuals
    the surface cannot explain; the surface is still fitted and reported, flagged.
 
+Status (measured 2026-12-02, ``stircasadi simulate three_planes_occluded`` at the problem's own
+1e-6 noise, then ``stircasadi estimate f13.h5 --method surface``; 2-core VM, a second heavy
+process on the other core part of the time): exit 3, UNRELIABLE. 1044 s in all (the joint fit
+of the 98 visible patches, chi2/dof 1.0, flagged by its linearity check; the surface 820 s, of
+which the final 8 x 8 fit 605 s, 980 traces at ill_step 10), max RSS 3.6 GB. The surface fit
+stops at its iteration limit (flagged) with chi2/dof 1.00 and 1 of 64 nodes in its mask, and
+that node lies 1.1 m from the panel (std 7 cm): at 1e-6 the panel's third bounce is ~1 noise std
+per bin and the route does not find it (``stir_surface``'s status). At 1e-8 the joint fit
+models the visible third bounce (77 noise std): it ran over 30 min and reached 17 GB resident
+before it was stopped, so the route is not yet usable there on this machine.
+
 Neglects: what ``stir_surface`` neglects, and the occluders' shadows of visible paths (step 1).
 """
 from __future__ import annotations
