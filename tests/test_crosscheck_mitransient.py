@@ -38,13 +38,15 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_mono")
 import mitransient
 import drjit as dr
-print(dr.llvm.Float([1.0, 2.0]) * 2.0)
+a, b = dr.llvm.Float([1.0, 2.0, 3.0]), dr.llvm.Float([2.0, 1.0, 0.5])
+print(dr.minimum(a, b) + dr.maximum(a, b) * 2.0)   # an older libLLVM (15) aborts on fminimum
 """
 
 
 def _llvm_backend_works() -> tuple[bool, str]:
-    """Dr.Jit's LLVM backend aborts the whole process (not an exception) when libLLVM is missing,
-    so it is tried in a child process first."""
+    """Dr.Jit's LLVM backend aborts the whole process (not an exception) when libLLVM is missing
+    or too old (libLLVM 15: "Cannot select ... fminimum" inside mitransient's film), so it is
+    tried in a child process first, with the operations that need a recent one."""
     import subprocess
     import sys
 
