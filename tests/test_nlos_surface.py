@@ -321,3 +321,35 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
     zt = DepthGrid(truth["x"], truth["y"], res.grid.frame).resample(truth["depth"], res.grid).reshape(res.shape)
     sel = res.mask & (np.abs(res.grid.x)[None] < 0.1) & (np.abs(res.grid.y)[:, None] < 0.1)
     assert sel.sum() >= 12 and np.max(np.abs(res.depth - zt)[sel]) < 1.5e-3
+
+
+def test_a_surface_the_noise_hides_is_not_detected(tilted_plane):
+    """The tilted-plane twin's third bounce scaled so that its whole signal is worth a chi^2 of
+    about 4 over every trace and bin (far below what 2 N free node unknowns fit to noise alone):
+    the detection test empties the mask and fails the fit with "no surface detected"; at the
+    twin's own noise the same fit detects the plane (chi^2 gain far above the threshold)."""
+    from dataclasses import replace as dc_replace
+
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+    from stircasadi.nlos.surface.fit import DETECT_P
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    st = SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=8)
+    full = fit_surface(relay, init, st, gate=0.2)
+    det = full.extras["detection"]
+    assert det["detected"] and det["chi2_gain"] > 10 * det["threshold"] and full.mask.any()
+    assert det["p"] == DETECT_P and not any("no surface" in r for r in full.reasons)
+    # the twin's traces (1 % noise) scaled down and fresh noise of the relay's std added
+    rng = np.random.default_rng(7)
+    sig = float(np.mean(relay.sigma))
+    energy = float(np.sum(relay.traces ** 2)) / sig ** 2
+    weak = dc_replace(relay, traces=math.sqrt(4.0 / energy) * relay.traces
+                      + sig * rng.standard_normal(relay.traces.shape))
+    res = fit_surface(weak, init, st, gate=0.2)
+    assert not res.mask.any() and not res.success
+    assert any(r.startswith("no surface detected") for r in res.reasons)
+    assert res.extras["detection"]["chi2_gain"] < res.extras["detection"]["threshold"]

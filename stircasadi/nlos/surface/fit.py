@@ -29,7 +29,11 @@ Steps
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
-   is ``mask_z`` std above 0 and above a tenth of the largest.
+   is ``mask_z`` std above 0 and above a tenth of the largest. Detection: the surface must lower
+   the whitened chi^2 (divided by the inflation) below the no-surface model's (zero albedo) by
+   more than the chi^2 quantile of 2 N degrees of freedom at p = ``DETECT_P`` (a likelihood
+   ratio with every node's depth and albedo free); else the mask is empty, ``success`` false and
+   ``reasons`` says "no surface detected" (``extras["detection"]``).
 
 Neglects what ``physics.py`` and ``response.py`` neglect; one background level for all bins.
 """
@@ -41,6 +45,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
+from scipy.stats import chi2 as _chi2_dist
 
 from ...errors import ReconstructionError
 from ...irf import GaussianIRF
@@ -56,7 +61,10 @@ from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
 
-__all__ = ["fit_surface", "noise_weights"]
+__all__ = ["fit_surface", "noise_weights", "DETECT_P"]
+
+#: false-alarm probability of the surface detection test (step 5)
+DETECT_P = 1e-3
 
 _log = get_logger("stircasadi.nlos.surface")
 
@@ -331,6 +339,20 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
     n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
     mask = (rho > st.mask_z * rho_std) & (rho > 0.1 * max(float(rho.max()), 1e-300))
+    # detection: the surface must lower chi^2 below what the same window holds without it (zero
+    # albedo, the fitted background and response) by more than chance would with 2 N free node
+    # unknowns (likelihood ratio at p = DETECT_P, chi^2 scaled by the inflation); else the data
+    # do not see a surface and the mask is empty
+    chi2_0, _ = model.objective(replace(state, rho=np.zeros_like(state.rho)), y, wgt)
+    gain_chi2 = (float(chi2_0) - chi2) / infl
+    need = float(_chi2_dist.isf(DETECT_P, 2 * N))
+    detected = gain_chi2 > need
+    if not detected:
+        mask[:] = False
+        reasons.append(f"no surface detected: the fitted surface lowers the whitened chi2 by {gain_chi2:.4g}, "
+                       f"not more than the {need:.4g} that noise alone reaches with p = {DETECT_P:g} "
+                       f"({2 * N} free node unknowns); the mask is empty (more signal: longer exposure, "
+                       "more traces)")
     shape = grid.shape
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
@@ -351,6 +373,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
         tail_std=gstd.get("tail"), brdf=st.brdf, fwhm_irf=resp.fwhm(),
         extras={"noise": noise_src, "window": [rl.grid.start, rl.grid.end], "n_traces": n_traces,
                 "response": resp.describe(), "background_std": gstd.get("bg"),
+                "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
+                              "detected": bool(detected)},
                 "slow_tails": [[t, b] for t, b in resp.slow],
                 "background_decay": None if model.direct is None else
                 {"amplitude": state.bg1, "length_m": state.bgtau},
