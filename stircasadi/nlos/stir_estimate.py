@@ -97,8 +97,8 @@ def add_stir_surface(result, capture, out_dir=None, max_traces: int = 1000, sett
                   "wall_time_s": time.perf_counter() - t0, "ill_step": step, **s.summary(),
                   "stats": {k: v for k, v in r.stats.items() if isinstance(v, (int, float, str, bool))}}
     nest = NLOSEstimate("surface", r.relay, r.volume, r.maps, s, stages={"surface": surf_stage},
-                        reasons=list(s.reasons), id_base=base, source_xyz=capture.source_xyz,
-                        camera_xyz=capture.camera_xyz)
+                        reasons=list(s.reasons), id_base=base, source_xyz=cap.source_xyz,
+                        camera_xyz=cap.camera_xyz)
     if out_dir is not None:
         nest.write_outputs(out_dir)
     nd = nest.to_json_dict()
@@ -116,11 +116,9 @@ def add_stir_surface(result, capture, out_dir=None, max_traces: int = 1000, sett
             joint_reasons.append(f"{c['name']}: {c['message']}")
         joint_checks.append(c)
     checks = joint_checks + [dict(c, name=f"surface-{c['name']}") for c in nd["checks"]]
-    failed = [c for c in nd["checks"] if not c["passed"]]
-    reasons = joint_reasons + [f"surface: {x}" for x in s.reasons] + [
-        f"surface-{c['name']}: {c['message']}" for c in failed if c["name"] != "solver"]
-    joint_ok = bool(result.fit.estimate.success) and not joint_reasons
-    ok = joint_ok and not s.reasons and not failed
+    # the surface's reasons already name a failed solve and a chi2 above its check's limit
+    reasons = joint_reasons + [f"surface: {x}" for x in s.reasons]
+    ok = bool(result.fit.estimate.success) and not joint_reasons and s.success
     stages["surface"] = surf_stage
     priors = dict(d.get("priors", {}))
     priors.update(nd.get("priors", {}))
