@@ -15,7 +15,8 @@ from stircasadi.scene import Scene
 from stircasadi.transport import simulate
 
 
-def _small_fig13():
+@pytest.fixture(scope="module")
+def small_fig13():
     """Every other patch of Fig. 13's three planes (4 x 4 each): 32 visible, 16 hidden behind
     the screen; 1e-8 relative noise."""
     base = P.build_scene()
@@ -28,7 +29,6 @@ def _small_fig13():
 def _joint_result(vis: VisiblePatches, source, camera, checks):
     """What ``add_stir_surface`` reads of a joint ``EstimateResult``: the fitted values and the
     view (ids, source, camera), and the joint estimate.json's lists."""
-    M = len(vis.ids)
     est = SimpleNamespace(values={"position": vis.positions, "normal": vis.normals, "albedo": vis.albedos,
                                   "area": vis.areas}, success=True)
     patches = [{"id": int(i), "visible": True, "position": vis.positions[k].tolist()} for k, i in enumerate(vis.ids)]
@@ -39,15 +39,16 @@ def _joint_result(vis: VisiblePatches, source, camera, checks):
                                                 camera=np.asarray(camera, float)), extra={})
 
 
-def test_stir_surface_route_in_the_joint_fits_frame():
+def test_stir_surface_route_in_the_joint_fits_frame(small_fig13, monkeypatch):
     """The joint fit places the scene in its own frame (source at its origin). Handing the route
     the visible patches, source and camera all translated by t must give the library route's
-    surface translated by t (same depth map to 1 um: the subtraction leaves 1e-13 differences in the traces; points X + t), not a surface built with
-    the capture's own source and camera (a rotation would not do as the known answer: the frame
-    search's box is world-aligned, so its grid turns with the axes); the estimate.json
+    surface translated by t (same depth map to 1 um: the subtraction leaves 1e-13 differences in
+    the traces; points X + t), not a surface built with the capture's own source and camera (a
+    rotation would not do as the known answer: the frame search's box is world-aligned, so its
+    grid turns with the axes); the estimate.json
     appends every node as a hidden patch after the visible ones and marks a failed joint chi2
     check as superseded by the surface's chi2."""
-    sc, cap = _small_fig13()
+    sc, cap = small_fig13
     vid = np.flatnonzero(~sc.hidden)
     vis = VisiblePatches(vid, sc.positions[vid], sc.normals[vid], sc.albedos[vid], sc.areas[vid], None)
     st = SurfaceSettings(n_nodes=4, levels=1, known_gain=True, max_iter=3, fit_sigma=False)
@@ -55,9 +56,8 @@ def test_stir_surface_route_in_the_joint_fits_frame():
     # a stated frame, no refinement: on 16 hidden patches the frame search's plane through its
     # few brightest voxels is ill-conditioned (1e-13 changes of the traces turn it), which is
     # not what this test is about
-    fr = (np.array([-0.6, 0.0, 0.9]), np.array([0.0, 1.0, 0.0]), np.array([-0.6, 0.0, -0.8]),
-          np.array([-0.8, 0.0, 0.6]))
-    fr = (fr[0], fr[1], fr[2], np.cross(fr[1], fr[2]))
+    u, v = np.array([0.0, 1.0, 0.0]), np.array([-0.6, 0.0, -0.8])
+    fr = (np.array([-0.6, 0.0, 0.9]), u, v, np.cross(u, v))
     ref = hidden_surface_from_stir(cap, vis, st, ill_step=step, frame=fr, refine=False)
     t = np.array([0.4, -1.2, 0.7])
     moved = VisiblePatches(vid, sc.positions[vid] + t, sc.normals[vid], sc.albedos[vid],
@@ -67,14 +67,10 @@ def test_stir_surface_route_in_the_joint_fits_frame():
     res = _joint_result(moved, cap.source_xyz + t, cap.camera_xyz + t, checks)
     import stircasadi.nlos.stir_estimate as E
 
-    orig = E.hidden_surface_from_stir
     frt = (fr[0] + t,) + fr[1:]
-    E.hidden_surface_from_stir = lambda c, v, s, ill_step: orig(c, v, s, ill_step=ill_step, frame=frt,
-                                                               refine=False)
-    try:
-        out = add_stir_surface(res, cap, max_traces=300, settings=st)
-    finally:
-        E.hidden_surface_from_stir = orig
+    monkeypatch.setattr(E, "hidden_surface_from_stir", lambda c, v, s, ill_step: hidden_surface_from_stir(
+        c, v, s, ill_step=ill_step, frame=frt, refine=False))
+    out = add_stir_surface(res, cap, max_traces=300, settings=st)
     got = out.extra["stir_surface"].surface
     np.testing.assert_allclose(got.depth, ref.surface.depth, atol=1e-6)
     assert np.ptp(ref.surface.depth) > 0      # the fit moved the nodes
@@ -91,8 +87,8 @@ def test_stir_surface_route_in_the_joint_fits_frame():
     assert "chi2" in SUPERSEDED and d["stages"]["surface"]["ill_step"] == step
 
 
-def test_surface_route_is_skipped_and_flagged_when_the_time_is_spent():
-    sc, cap = _small_fig13()
+def test_surface_route_is_skipped_and_flagged_when_the_time_is_spent(small_fig13):
+    sc, cap = small_fig13
     vid = np.flatnonzero(~sc.hidden)
     vis = VisiblePatches(vid, sc.positions[vid], sc.normals[vid], sc.albedos[vid], sc.areas[vid], None)
     res = _joint_result(vis, cap.source_xyz, cap.camera_xyz, [])
@@ -101,11 +97,11 @@ def test_surface_route_is_skipped_and_flagged_when_the_time_is_spent():
     assert "time limit" in out.json["reasons"][-1] and "stir_surface" not in out.extra
 
 
-def test_stir_surface_refuses_a_hidden_count_and_relay_methods():
+def test_stir_surface_refuses_a_hidden_count_and_relay_methods(small_fig13):
     from stircasadi.errors import ModelError
     from stircasadi.pipeline import estimate_capture
 
-    sc, cap = _small_fig13()
+    sc, cap = small_fig13
     with pytest.raises(ModelError, match="one surface"):
         estimate_capture(cap, hidden=3, method="surface")
     with pytest.raises(ModelError, match="method='surface'"):
