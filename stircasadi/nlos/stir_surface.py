@@ -55,6 +55,7 @@ from .backprojection import backprojection
 from .relay import Relay, from_stir
 from .settings import VolumeSettings
 from .surface import SurfaceResult, SurfaceSettings, fit_surface
+from .surface.explained import matched_filter
 from .volume import Maps, Volume
 
 __all__ = ["VisiblePatches", "StirSurface", "hidden_surface_from_stir", "visible_stir",
@@ -163,35 +164,13 @@ def _with_frame(relay: Relay, frame) -> Relay:
 
 
 def matched_score(relay: Relay, X: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """Point-scatterer detection score of points ``X`` (K, 3): with the relay weights
-    a_p(X) = g_p max(cos_L, 0) max(cos_D, 0) / (|X - L|^2 |X - D|^2) (the hidden element's own
-    cosines taken as 1) and y_p(t) the trace read at the path length (linear interpolation),
-    score = (sum_p a_p y_p(t_p))^2 / (sum_p a_p^2 sigma^2): the chi^2 decrease of the best
-    single point at X (a radiometrically weighted, normalised backprojection)."""
-    g = relay.grid
-    T = g.n_bins
-    num, den = np.zeros(len(X)), np.zeros(len(X))
-    flat = np.concatenate([relay.traces, np.zeros((relay.n_traces, 1))], axis=1)
-    for p0 in range(0, relay.n_traces, chunk):
-        sl = slice(p0, min(p0 + chunk, relay.n_traces))
-        vL = X[None] - relay.L[sl, None]
-        vD = X[None] - relay.D[sl, None]
-        dL, dD = np.linalg.norm(vL, axis=-1), np.linalg.norm(vD, axis=-1)
-        cL = np.maximum(np.einsum("pkd,pd->pk", vL, relay.nL[sl]) / dL, 0.0)
-        cD = np.maximum(np.einsum("pkd,pd->pk", vD, relay.nD[sl]) / dD, 0.0)
-        a = relay.gain[sl, None] * cL * cD / (dL * dL * dD * dD)
-        pos = (relay.leg[sl, None] + dL + dD - g.start) / g.bin_width - 0.5
-        i0 = np.floor(pos).astype(np.int64)
-        fr = pos - i0
-        bad = (i0 < 0) | (i0 >= T - 1)
-        i0[bad] = T
-        rows = (np.arange(sl.start, sl.stop) * (T + 1))[:, None]
-        lo = flat.ravel()[i0 + rows]
-        hi = flat.ravel()[np.where(bad, T, i0 + 1) + rows]
-        num += np.sum(a * (lo + (hi - lo) * fr), axis=0)
-        den += np.sum(a * a, axis=0)
-    sig = float(np.mean(relay.sigma)) if relay.sigma is not None else 1.0
-    return num * np.abs(num) / np.maximum(den * sig * sig, 1e-300)
+    """Point-scatterer detection score of points ``X`` (K, 3) on the relay's own traces: with the
+    relay weights a_p(X) = g_p max(cos_L, 0) max(cos_D, 0) / (|X - L|^2 |X - D|^2) (the hidden
+    element's own cosines taken as 1) and y_p(t) the trace read at the path length (linear
+    interpolation), score = (sum_p a_p y_p(t_p))^2 / (sum_p a_p^2 sigma^2): the chi^2 decrease of
+    the best single point at X (a radiometrically weighted, normalised backprojection;
+    ``surface.explained.matched_filter`` without a kernel)."""
+    return matched_filter(relay, relay.traces, X, chunk=chunk)
 
 
 def _find_frame(relay: Relay, margin: float, n: int, n_traces: int, top: float = 0.5):
@@ -279,7 +258,7 @@ def hidden_surface_from_stir(capture, visible: VisiblePatches, settings: Surface
     if refine:
         t3 = time.perf_counter()
         coarse = fit_surface(rl, maps, replace(st, n_nodes=coarse_nodes, levels=1, max_iter=coarse_iter,
-                                                subsamples=1, extent=None), gate=None)
+                                                subsamples=1, extent=None, explained=False), gate=None)
         m = coarse.mask if coarse.mask.sum() >= 4 else coarse.albedo >= 0.5 * coarse.albedo.max()
         Xc = coarse.points()[m]
         fr2 = _plane_frame(Xc, coarse.albedo[m], relay_mid)

@@ -75,6 +75,13 @@ class SurfaceSettings:
     step_precision: str = "float32"
     #: minimum significance (albedo / its std) of a node in the surface mask
     mask_z: float = 3.0
+    #: the explained-returns check (``explained.py``): the whitened residual over the relay's
+    #: whole time range (after the gate) searched by a matched filter over ``explained_n``^3
+    #: candidate points; a largest score above the noise level at false-alarm probability
+    #: ``explained_p`` fails the fit ("unexplained returns"); False: not run
+    explained: bool = True
+    explained_p: float = 1e-3
+    explained_n: int = 32
 
     def validate(self) -> "SurfaceSettings":
         if not (int(self.n_nodes) >= 3):
@@ -92,6 +99,10 @@ class SurfaceSettings:
             raise ReconstructionError(f"response must be 'auto', 'gaussian' or 'emg'; got {self.response!r}.")
         if self.direct not in ("auto", "none"):
             raise ReconstructionError(f"direct must be 'auto' or 'none'; got {self.direct!r}.")
+        if not (0.0 < float(self.explained_p) < 1.0):
+            raise ReconstructionError(f"explained_p must be in (0, 1); got {self.explained_p!r}.")
+        if not (int(self.explained_n) >= 4):
+            raise ReconstructionError(f"explained_n must be >= 4; got {self.explained_n!r}.")
         if self.step_precision not in ("float32", "float64"):
             raise ReconstructionError(f"step_precision must be 'float32' or 'float64'; got {self.step_precision!r}.")
         if isinstance(self.prior, str):
