@@ -232,7 +232,8 @@ def test_estimate_capture_json_and_files(tilted_plane, tmp_path):
     p = d["patches"][0]
     assert len(p["position_std"]) == 3 and p["albedo_std"] is not None
     assert d["verdict"] in ("OK", "UNRELIABLE") and (d["verdict"] == "OK") == d["success"]
-    assert {c["name"] for c in d["checks"]} == {"solver", "chi2"}
+    assert {c["name"] for c in d["checks"]} == {"solver", "chi2", "detection", "explained-returns"}
+    assert d["success"] == all(c["passed"] for c in d["checks"])
     from stircasadi.errors import ReconstructionError
     with pytest.raises(ReconstructionError, match="method"):
         estimate_capture(cap, method="nope")

@@ -82,6 +82,20 @@ def json_dict(est) -> dict:
         checks.append({"name": "chi2", "passed": s.chi2_dof <= lim, "value": s.chi2_dof, "limit": lim,
                        "message": f"whitened chi2/dof of the surface fit over {s.dof} dof"
                        + ("" if s.chi2_dof <= 1 else "; std inflated by sqrt(chi2/dof)")})
+        det = s.extras.get("detection")
+        if det:
+            checks.append({"name": "detection", "passed": bool(det["detected"]), "value": det["chi2_gain"],
+                           "limit": det["threshold"],
+                           "message": f"the surface lowers the whitened chi2 by {det['chi2_gain']:.4g} against "
+                           f"{det['threshold']:.4g} from noise alone (p = {det['p']:g})"})
+        ex = s.extras.get("explained")
+        if ex and "max_residual" in ex:
+            checks.append({"name": "explained-returns", "passed": bool(ex["passed"]), "value": ex["max_residual"],
+                           "limit": ex["threshold"],
+                           "message": f"largest matched-filter chi2 of the whitened residual over "
+                           f"[{ex['window'][0]:.4g}, {ex['window'][1]:.4g}] m of path: {ex['max_residual']:.4g} at "
+                           f"{[round(a, 3) for a in ex['at']]} m, {ex['candidates']} candidate points, limit "
+                           f"{ex['threshold']:.4g} (p = {ex['p']:g}); the data's own largest {ex['max_data']:.4g}"})
     patches = _surface_patches(est) if s is not None else _map_patches(est)
     c, u, v, w = est.relay.frame
     surf = {"method": est.method, "frame": {"centre": _l(c), "u": _l(u), "v": _l(v), "w": _l(w)},
