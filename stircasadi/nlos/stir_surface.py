@@ -37,6 +37,13 @@ frame search (the final frame is 18 deg off the panel's plane, its extent 1.6 x 
 0.5 m panel). At the problem's own 1e-6 (``--noise 1e-6 --ill-step 12``) the third bounce is ~1
 noise std per bin (total SNR ~98 over all 9604 traces): the fit's mask keeps 2 of 64 nodes, no
 patch falls inside it (chi2/dof 1.0; 551 s, 3.7 GB).
+Measured 2026-12-02 (``--noise 1e-6 --ill-step 10 --iter 15``, 356 s, 3.7 GB): 14 mask nodes,
+chi2/dof 0.998, detection passed, no reason given, yet no patch inside the mask (nodes 0.6-2.4 m
+from the panel): the fit's chi2 is over its own window only. The explained-returns check
+(``surface.explained``) now fails that fit (residual matched-filter chi2 72 against 30.7, at
+(-0.59, -0.44, 1.26) m, beside the panel); a frame from an oriented matched filter (the point's
+normal searched over 200 directions) put the final fit's frame on the panel's plane, 16 deg off,
+but the fit still missed (6 of 49 patches inside, 0.5 m off) and is flagged the same way.
 
 Neglects: errors of the visible geometry (they leave second-bounce residuals), the occlusion of
 relay-hidden legs by the occluders (``surface.physics``), the hidden-to-visible fourth bounce.
