@@ -105,17 +105,16 @@ def search_points(relay: Relay, also: np.ndarray | None = None, margin: float = 
 
 def explained_returns(relay: Relay, resid: np.ndarray, wgt: np.ndarray, data: np.ndarray,
                       sigma: float, also: np.ndarray | None = None, p: float = 1e-3, n: int = 32,
-                      margin: float = 0.5, frac: float = 0.1) -> dict:
+                      margin: float = 0.5) -> dict:
     """The explained-returns check of a fit: the matched filter of the whitened ``resid`` (P, T)
     and of the ``data`` (P, T) over :func:`search_points`, with a kernel of std
     sqrt(sigma^2 + spacing^2) (``sigma``: the fitted response's width; spacing: the candidates';
     the nearest candidate's paths differ from a point's by up to sqrt(3) spacing, so a point
     between candidates is not missed). The residual holds
-    unexplained returns when its largest S exceeds both the noise level ``chi2.isf(p / K, 1)``
-    and ``frac`` of the data's largest S (a fit that explains all but a small fraction of the
-    strongest return is left to the chi2 check).
+    unexplained returns when its largest S exceeds the noise level ``chi2.isf(p / K, 1)``.
 
-    Returns a dict: ``passed``, ``max_residual`` (S), ``max_data``, ``ratio``, ``threshold``,
+    Returns a dict: ``passed``, ``max_residual`` (S), ``max_data``, ``ratio`` (of the two),
+    ``threshold``,
     ``at`` (the point of the largest residual S), ``candidates`` (K), ``kernel_sigma_m``."""
     X, h = search_points(relay, also, margin, n)
     ks = math.sqrt(sigma ** 2 + float(np.max(h)) ** 2)
@@ -125,6 +124,6 @@ def explained_returns(relay: Relay, resid: np.ndarray, wgt: np.ndarray, data: np
     k = int(np.argmax(sr))
     mr, md = float(sr[k]), float(max(sd.max(), 0.0))
     ratio = mr / md if md > 0 else math.inf
-    return {"passed": bool(not (mr > thr and ratio > frac)), "max_residual": mr, "max_data": md,
+    return {"passed": bool(mr <= thr), "max_residual": mr, "max_data": md,
             "ratio": ratio, "threshold": thr, "at": X[k].tolist(), "candidates": int(len(X)),
-            "kernel_sigma_m": ks, "p": p, "frac": frac}
+            "kernel_sigma_m": ks, "p": p}

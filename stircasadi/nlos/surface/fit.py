@@ -335,7 +335,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     back = m_full.background(state)[0]
     wgt, _ = noise_weights(rf.traces, rf.sigma, st.noise_sigma)
     out = explained_returns(rf, rf.traces - pred, wgt, rf.traces - back, float(state.sigma), also=also,
-                            p=float(st.explained_p), n=int(st.explained_n), frac=0.0)
+                            p=float(st.explained_p), n=int(st.explained_n))
     out["window"] = [rf.grid.start, rf.grid.end]
     return out
 
