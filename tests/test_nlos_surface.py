@@ -319,6 +319,20 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
     assert lv[0]["solves"][0]["lam"] == 0.0 and lv[0]["lam_next"] > 0
     assert lv[1]["solves"][0]["lam"] == lv[0]["lam_next"] and lv[1]["lam_next"] > 0
     assert lv[2]["solves"][0]["lam"] == lv[1]["lam_next"] and res.prior_weight > 0 and "lambda_curve" in lv[2]
+    # every solve's history (f before, f after, predicted decrease, damping, largest depth step):
+    # each accepted step lowers F, the steps chain, the last is the solve's F, and the quadratic
+    # model's predicted decrease is what the step delivered once the steps are small
+    keys = ("f", "f_new", "predicted", "mu", "dz_max")
+    for l in lv:
+        for so in l["solves"]:
+            h = np.array([[e[k] for k in keys] for e in so["history"]])
+            assert len(h) == so["iterations"] - (so["status"] != "Converged" and
+                                                 so["status"] != "Maximum_Iterations_Exceeded")
+            assert np.all(h[:, 1] < h[:, 0]) and np.allclose(h[1:, 0], h[:-1, 1], rtol=1e-12)
+            assert h[-1, 1] == pytest.approx(so["f"], rel=1e-12)
+    last = np.array([[e[k] for k in keys] for e in lv[2]["solves"][-1]["history"]])
+    small = last[last[:, 4] < 1e-3]
+    assert len(small) and np.all(np.abs((small[:, 0] - small[:, 1]) / small[:, 2] - 1) < 0.1)
     zt = DepthGrid(truth["x"], truth["y"], res.grid.frame).resample(truth["depth"], res.grid).reshape(res.shape)
     sel = res.mask & (np.abs(res.grid.x)[None] < 0.1) & (np.abs(res.grid.y)[:, None] < 0.1)
     assert sel.sum() >= 12 and np.max(np.abs(res.depth - zt)[sel]) < 1.5e-3
@@ -354,3 +368,24 @@ def test_a_surface_the_noise_hides_is_not_detected(tilted_plane):
     assert not res.mask.any() and not res.success
     assert any(r.startswith("no surface detected") for r in res.reasons)
     assert res.extras["detection"]["chi2_gain"] < res.extras["detection"]["threshold"]
+
+
+def test_a_solve_cut_by_its_iteration_limit_says_how_far_it_was_from_converging(tilted_plane):
+    """Two LM iterations from the LCT start on the tilted plane: the level is not converged, the
+    fit is not a success, and the reason gives the chi^2 decrease of the last step (twice the
+    last history entry's drop in F, far above 1)."""
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01,
+                                                   max_iter=2), gate=0.2)
+    so = res.levels[0]["solves"][0]
+    assert so["status"] == "Maximum_Iterations_Exceeded" and not res.success
+    drop = 2 * (so["history"][-1]["f"] - so["history"][-1]["f_new"])
+    assert drop > 10
+    msg = [r for r in res.reasons if "not converged" in r]
+    assert len(msg) == 1 and f"{drop:.4g}" in msg[0]

@@ -53,6 +53,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.ndimage import uniform_filter1d
 from scipy.stats import chi2 as _chi2_dist
 
@@ -180,12 +181,17 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf):
     cands = np.concatenate([[0.0], hz * np.logspace(-8, 2, 41)])
     ridge = 1e-10 * float(np.trace(H)) / npar + 1e-300
     out, valid = [], [chi2]
+    Rth = Rf @ th
     for lam in cands:
-        A = H + lam * Rf + ridge * np.eye(npar)
-        try:
-            dlt = -np.linalg.solve(A, g + lam * (Rf @ th))
-        except np.linalg.LinAlgError:
-            continue
+        A = H + lam * Rf
+        A[np.diag_indices(npar)] += ridge
+        try:   # A is symmetric positive definite (H and R semi-definite, the ridge): Cholesky
+            dlt = -cho_solve(cho_factor(A, check_finite=False), g + lam * Rth, check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            try:
+                dlt = -np.linalg.solve(A, g + lam * Rth)
+            except np.linalg.LinAlgError:
+                continue
         c = chi2 + 2 * g @ dlt + dlt @ H @ dlt
         out.append((lam, c))
         if float(np.max(np.abs(dlt[:N]))) <= slack:
@@ -281,7 +287,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             else:
                 res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
             state = res["state"]
-            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound")}
+            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound", "history")
+                                   if k in res}
                                   | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
                                      "betas": list(state.betas)})
             _log.info("level %d (%dx%d) solve: %s, %d it, f=%.6g, lam=%.3g, sigma=%.4g, tail=%.4g",
@@ -310,7 +317,10 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
         if not res["success"]:
-            reasons.append(f"level {li} ({n}x{n}): solver status {res['status']}")
+            h = res.get("history") or []
+            tail = (f" (its last step still lowered the whitened chi2 by {2 * (h[-1]['f'] - h[-1]['f_new']):.4g}: "
+                    "not converged; raise max_iter)") if h and res["status"].startswith("Maximum") else ""
+            reasons.append(f"level {li} ({n}x{n}): solver status {res['status']}{tail}")
         if res["at_bound"]:
             reasons.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "
                            f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "

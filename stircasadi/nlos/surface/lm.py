@@ -77,7 +77,12 @@ def _damping(h, N):
 
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32) -> dict:
-    """Run LM from ``st``. Returns dict(state, status, iterations, success, f, chi2)."""
+    """Run LM from ``st``. Returns dict(state, status, iterations, success, f, at_bound,
+    history): ``history`` holds one dict per accepted step, F before and after it (``f``,
+    ``f_new``), the decrease the quadratic model predicted for the step taken (``predicted``:
+    it matches f - f_new where the model is locally quadratic; a solve stopped by ``max_iter``
+    whose last steps still lower F by far more than 1 has not converged), the damping ``mu``
+    and the largest depth change ``dz_max`` (m)."""
     N = model.N
     prior = lam > 0
 
@@ -88,6 +93,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     st = model.unpack(th, st)
     mu = 1e-3
     status, it, f = "Maximum_Iterations_Exceeded", 0, None
+    hist = []
     for it in range(1, max_iter + 1):
         lin = model.linearise(st, y, wgt, dtype=dtype)
         f = 0.5 * lin["chi2"] + pen(st.z)
@@ -115,6 +121,10 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
             fn = 0.5 * chi2n + pen(sn.z)
             if np.isfinite(fn) and fn < f:
                 accepted = True
+                dd = tn - th      # the step taken (clipped and projected)
+                hist.append({"f": float(f), "f_new": float(fn),
+                             "predicted": -float(g @ dd + 0.5 * dd @ (H @ dd)),
+                             "mu": float(mu), "dz_max": float(np.max(np.abs(dd[:N]))) if N else 0.0})
                 rel = (f - fn) / max(abs(f), 1e-300)
                 th, st, f = tn, sn, fn
                 mu = max(mu / 3.0, 1e-9)
@@ -126,6 +136,6 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
         if rel < tol:
             status = "Converged"
             break
-    return {"state": st, "status": status, "iterations": it, "success": status.startswith("Converged"),
+    return {"state": st, "status": status, "iterations": it, "history": hist, "success": status.startswith("Converged"),
             "f": float(f), "at_bound": [n for i, n in enumerate(model.glob)
                                         if bounds.at_bound(th)[2 * N + i]]}
