@@ -120,6 +120,10 @@ def surface_row(n: int, prior: str) -> dict:
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
             "prior": prior, "prior_weight": s.prior_weight, "success": s.success,
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
+                        "lam": [x["lam"] for x in lv["solves"]],
+                        # the whitened chi^2 decrease of each solve's last step (>> 1: not converged)
+                        "last_chi2_drop": [2 * (x["history"][-1]["f"] - x["history"][-1]["f_new"])
+                                           if x.get("history") else None for x in lv["solves"]],
                         "wall_time_s": lv["wall_time_s"]} for lv in s.levels]}
 
 
