@@ -389,3 +389,39 @@ def test_a_solve_cut_by_its_iteration_limit_says_how_far_it_was_from_converging(
     assert drop > 10
     msg = [r for r in res.reasons if "not converged" in r]
     assert len(msg) == 1 and f"{drop:.4g}" in msg[0]
+
+
+def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation(tilted_plane, monkeypatch):
+    """prior="auto", one level, the discrepancy choice forced to 10x its weight: the level is
+    solved again, and that re-solve's first step (which reuses the weight choice's
+    linearisation) starts exactly where the first solve ended: its F is the first solve's chi^2 / 2
+    plus the new weight's penalty of the first solve's depths (those of the same fit without a
+    prior, the same six iterations)."""
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+    from stircasadi.nlos.surface import fit as fitmod
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=6)
+    plain = fit_surface(relay, init, SurfaceSettings(**kw, prior="none"), gate=0.2)
+    real, calls = fitmod._choose_lambda, []
+
+    def forced(*a, **k):
+        lam, curve = real(*a, **k)
+        calls.append(lam)
+        return (10 * lam if len(calls) == 1 else lam), curve
+
+    monkeypatch.setattr(fitmod, "_choose_lambda", forced)
+    res = fit_surface(relay, init, SurfaceSettings(**kw, prior="auto"), gate=0.2)
+    s1, s2 = res.levels[0]["solves"]
+    assert s1["lam"] == 0.0 and calls[0] > 0 and s2["lam"] == pytest.approx(10 * calls[0], rel=1e-12)
+    assert s1["f"] == pytest.approx(plain.levels[0]["solves"][0]["f"], rel=1e-12)
+    g = plain.grid
+    lap = g.laplacian()
+    R = (lap.T @ lap).toarray() / (g.hx * g.hy)
+    z1 = plain.depth.ravel()
+    expect = s1["history"][-1]["f_new"] + 0.5 * s2["lam"] * float(z1 @ R @ z1)
+    assert s2["history"][0]["f"] == pytest.approx(expect, rel=1e-9)

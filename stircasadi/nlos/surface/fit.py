@@ -281,9 +281,12 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 "solves": []}
         t_lvl = time.perf_counter()
         auto = st.prior == "auto"
+        lin = None
         for rep in range(2 if (auto and last) else 1):
             if st.solver == "lm":
-                res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype)
+                # a re-solve starts where the weight was chosen: that linearisation is its first step's
+                res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype,
+                               lin0=lin if rep else None)
             else:
                 res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
             state = res["state"]

@@ -76,7 +76,7 @@ def _damping(h, N):
 
 
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
-             slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32) -> dict:
+             slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None) -> dict:
     """Run LM from ``st``. Returns dict(state, status, iterations, success, f, at_bound,
     history): ``history`` holds one dict per accepted step, F before and after it (``f``,
     ``f_new``), the decrease the quadratic model predicted for the step taken (``predicted``:
@@ -95,7 +95,8 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     status, it, f = "Maximum_Iterations_Exceeded", 0, None
     hist = []
     for it in range(1, max_iter + 1):
-        lin = model.linearise(st, y, wgt, dtype=dtype)
+        # (``lin0``: the caller's linearisation at the starting state, reused by the first step)
+        lin = lin0 if (it == 1 and lin0 is not None) else model.linearise(st, y, wgt, dtype=dtype)
         f = 0.5 * lin["chi2"] + pen(st.z)
         H, g = lin["H"], lin["g"].copy()
         if prior:
