@@ -329,8 +329,9 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                            f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "
                            f"[{tail_b[0]:.3g}, {tail_b[1]:.3g}] m)")
         prev = grid
+    # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
-                   relay.n_traces, t_start, (relay, gate, q_dir))
+                   relay.n_traces, t_start, (relay, gate, q_dir), lin)
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -354,11 +355,12 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
 
 
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
-            t_start, full=None) -> SurfaceResult:
+            t_start, full=None, lin=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
-    steps 5 and 6)."""
+    steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is."""
     grid = model.grid
-    lin = model.linearise(state, y, wgt, dtype=np.float64)
+    if lin is None:
+        lin = model.linearise(state, y, wgt, dtype=np.float64)
     H, chi2 = lin["H"], lin["chi2"]
     N = grid.n
     npar = H.shape[0]
