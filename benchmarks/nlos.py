@@ -33,6 +33,7 @@ import numpy as np
 from stircasadi.acquisition.importers import read_stanford_lct
 from stircasadi.datasets import data_dir
 from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct, plane_fit
+from stircasadi.nlos.surface.lm import last_decrease
 
 CHARTS = {"resolution": "data_resolution_chart_40cm.mat", "dot": "data_dot_chart_40cm.mat"}
 
@@ -121,9 +122,8 @@ def surface_row(n: int, prior: str) -> dict:
             "prior": prior, "prior_weight": s.prior_weight, "success": s.success,
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
                         "lam": [x["lam"] for x in lv["solves"]],
-                        # the whitened chi^2 decrease of each solve's last step (>> 1: not converged)
-                        "last_chi2_drop": [2 * (x["history"][-1]["f"] - x["history"][-1]["f_new"])
-                                           if x.get("history") else None for x in lv["solves"]],
+                        # chi^2 + prior removed by each solve's last step (>> 1: not converged)
+                        "last_drop": [last_decrease(x) for x in lv["solves"]],
                         "wall_time_s": lv["wall_time_s"]} for lv in s.levels]}
 
 

@@ -63,7 +63,7 @@ from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid
-from .lm import Bounds, solve_lm
+from .lm import Bounds, last_decrease, solve_lm
 from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
@@ -320,9 +320,9 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
         if not res["success"]:
-            h = res.get("history") or []
-            tail = (f" (its last step still lowered the whitened chi2 by {2 * (h[-1]['f'] - h[-1]['f_new']):.4g}: "
-                    "not converged; raise max_iter)") if h and res["status"].startswith("Maximum") else ""
+            drop = last_decrease(res)
+            tail = (f" (its last step still lowered the whitened chi2 plus prior by {drop:.4g}: not converged; "
+                    "raise max_iter)") if drop is not None and res["status"].startswith("Maximum") else ""
             reasons.append(f"level {li} ({n}x{n}): solver status {res['status']}{tail}")
         if res["at_bound"]:
             reasons.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "

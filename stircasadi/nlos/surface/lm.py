@@ -21,7 +21,7 @@ import scipy.linalg as sla
 
 from .model import SurfaceModel, SurfaceState
 
-__all__ = ["solve_lm", "Bounds"]
+__all__ = ["solve_lm", "Bounds", "last_decrease"]
 
 
 class Bounds:
@@ -75,6 +75,13 @@ def _damping(h, N):
     return np.maximum(d, 1e-12 * max(float(np.max(d)), 1e-300))
 
 
+def last_decrease(solve: dict) -> float | None:
+    """2 (F before - F after) of a solve's last accepted step (``history``): the whitened chi^2
+    plus the prior's penalty it removed (far above 1: the solve had not converged), or None."""
+    h = solve.get("history") or []
+    return 2.0 * (h[-1]["f"] - h[-1]["f_new"]) if h else None
+
+
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None) -> dict:
     """Run LM from ``st``. Returns dict(state, status, iterations, success, f, at_bound,
@@ -82,7 +89,8 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     ``f_new``), the decrease the quadratic model predicted for the step taken (``predicted``:
     it matches f - f_new where the model is locally quadratic; a solve stopped by ``max_iter``
     whose last steps still lower F by far more than 1 has not converged), the damping ``mu``
-    and the largest depth change ``dz_max`` (m)."""
+    and the largest depth change ``dz_max`` (m). ``lin0``: ``model.linearise``'s result at ``st``,
+    used for the first step instead of a new one (its H is modified in place)."""
     N = model.N
     prior = lam > 0
 
