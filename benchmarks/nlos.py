@@ -33,6 +33,7 @@ import numpy as np
 from stircasadi.acquisition.importers import read_stanford_lct
 from stircasadi.datasets import data_dir
 from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct, plane_fit
+from stircasadi.nlos.surface import SurfaceSettings
 from stircasadi.nlos.surface.lm import last_decrease
 
 CHARTS = {"resolution": "data_resolution_chart_40cm.mat", "dot": "data_dot_chart_40cm.mat"}
@@ -101,7 +102,7 @@ def plane_of(s):
     return plane_fit(s.points()[s.mask], s.albedo[s.mask])
 
 
-def surface_row(n: int, prior: str) -> dict:
+def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
     the process's maximum resident memory, the albedo-weighted plane through the mask."""
     import resource
@@ -110,7 +111,7 @@ def surface_row(n: int, prior: str) -> dict:
     levels = max(1, int(round(math.log2(n / 8))) + 1)
     t0 = time.perf_counter()
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
-                           wall_step=4, n_nodes=n, levels=levels, max_iter=12,
+                           wall_step=4, n_nodes=n, levels=levels, max_iter=max_iter, threads=threads,
                            prior=prior if prior in ("auto", "none") else float(prior))
     dt = time.perf_counter() - t0
     s = est.surface
@@ -120,10 +121,12 @@ def surface_row(n: int, prior: str) -> dict:
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
             "prior": prior, "prior_weight": s.prior_weight, "success": s.success,
+            "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
                         "lam": [x["lam"] for x in lv["solves"]],
                         # chi^2 + prior removed by each solve's last step (>> 1: not converged)
                         "last_drop": [last_decrease(x) for x in lv["solves"]],
+                        "status": [x["status"] for x in lv["solves"]], "lam_check": lv.get("lam_check"),
                         "wall_time_s": lv["wall_time_s"]} for lv in s.levels]}
 
 
@@ -135,10 +138,13 @@ def main(argv=None):
     ap.add_argument("--surface", default="8,16,32", help="surface grid sizes (nodes per side)")
     ap.add_argument("--prior", default="none", help="the surface fit's smoothness prior: none "
                     "(default), auto (discrepancy principle), or a weight")
+    ap.add_argument("--threads", type=int, default=None, help="the surface fit's threads (default: "
+                    "SurfaceSettings.threads: the process's CPUs, at most 4; 1 under OMP_NUM_THREADS=1)")
+    ap.add_argument("--max-iter", type=int, default=12, help="LM iterations per surface level")
     ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.surface_one is not None:
-        print(json.dumps(surface_row(a.surface_one, a.prior)))
+        print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter)))
         return
     rows = []
     folder = data_dir() / "otoole2018_confocal"
@@ -183,7 +189,9 @@ def main(argv=None):
             # each size in its own process: the time without tracemalloc (which slows the fit's
             # many NumPy allocations several-fold) and the process's maximum resident memory
             # (CasADi's buffers included)
-            out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior],
+            out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior,
+                                  "--max-iter", str(a.max_iter)] + ([] if a.threads is None else
+                                                                   ["--threads", str(a.threads)]),
                                  capture_output=True, text=True)
             if out.returncode != 0:
                 print(f"surface {n}x{n} failed:\n{out.stderr[-2000:]}")

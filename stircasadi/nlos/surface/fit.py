@@ -235,6 +235,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     frame = relay.frame
     dtype = np.float32 if st.step_precision == "float32" else np.float64
     chunk = int(st.chunk_mb * 2 ** 20)
+    workers = st.n_threads()
     levels, reasons = [], []
     lam = 0.0 if st.prior in ("auto", "none") else float(st.prior)
     gain_scale = 1.0
@@ -259,7 +260,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             if q_dir is not None:
                 state.bgtau = max(t for t, _ in r0.slow)
             m1 = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub,
-                              q_dir).predict(state) - bg
+                              q_dir, workers).predict(state) - bg
             s = float(np.sum(m1 * (y - bg)) / max(np.sum(m1 * m1), 1e-300))
             if not (s > 0):
                 raise ReconstructionError("The initial surface predicts no signal where the data have "
@@ -272,7 +273,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         else:
             state = replace(state, z=z, rho=rho)
         rl.gain = rl.gain * gain_scale
-        model = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir)
+        model = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers)
         bounds = Bounds(model, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
         h = math.sqrt(grid.hx * grid.hy)
         lap = grid.laplacian()
@@ -286,7 +287,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             if st.solver == "lm":
                 # a re-solve starts where the weight was chosen: that linearisation is its first step's
                 res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype,
-                               lin0=lin if rep else None)
+                               lin0=lin if rep else None, tol_chi2=st.tol_chi2)
             else:
                 res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
             state = res["state"]
@@ -344,7 +345,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     rf = relay.window(lo, relay.grid.end)
     rf.gain = rf.gain * gain_scale
     m_full = SurfaceModel(model.grid, rf, model.response(state), model.brdf, False, model.chunk_bytes,
-                          model.sub, q_dir)
+                          model.sub, q_dir, model.workers)
     pred = m_full.predict(state)
     back = m_full.background(state)[0]
     wgt, _ = noise_weights(rf.traces, rf.sigma, st.noise_sigma)

@@ -83,14 +83,22 @@ def last_decrease(solve: dict) -> float | None:
 
 
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
-             slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None) -> dict:
+             slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None,
+             tol_chi2: float = 0.0) -> dict:
     """Run LM from ``st``. Returns dict(state, status, iterations, success, f, at_bound,
     history): ``history`` holds one dict per accepted step, F before and after it (``f``,
     ``f_new``), the decrease the quadratic model predicted for the step taken (``predicted``:
     it matches f - f_new where the model is locally quadratic; a solve stopped by ``max_iter``
     whose last steps still lower F by far more than 1 has not converged), the damping ``mu``
     and the largest depth change ``dz_max`` (m). ``lin0``: ``model.linearise``'s result at ``st``,
-    used for the first step instead of a new one (its H is modified in place)."""
+    used for the first step instead of a new one (its H is modified in place).
+
+    Stops ("Converged") when a step lowers F by less than ``tol`` relative, or (``tol_chi2`` > 0)
+    when a step's decrease of 2F and the decrease its quadratic model predicted are both below
+    tol_chi2 max(1, chi2/dof): twice the predicted decrease of a Gauss-Newton step d is at least
+    d^T H d, its squared length in the Fisher metric, so such a step moved the unknowns by less
+    than tol_chi2^(1/2) of their (inflated) standard deviation, jointly; the steps left are
+    smaller still while the decrease shrinks."""
     N = model.N
     prior = lam > 0
 
@@ -101,6 +109,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     st = model.unpack(th, st)
     mu = 1e-3
     status, it, f = "Maximum_Iterations_Exceeded", 0, None
+    dof = max(int(np.size(y)) - model.npar, 1)
     hist = []
     for it in range(1, max_iter + 1):
         # (``lin0``: the caller's linearisation at the starting state, reused by the first step)
@@ -135,6 +144,10 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
                              "predicted": -float(g @ dd + 0.5 * dd @ (H @ dd)),
                              "mu": float(mu), "dz_max": float(np.max(np.abs(dd[:N]))) if N else 0.0})
                 rel = (f - fn) / max(abs(f), 1e-300)
+                small = False
+                if tol_chi2 > 0:
+                    infl = max(1.0, chi2n / dof)
+                    small = max(2.0 * (f - fn), 2.0 * hist[-1]["predicted"]) < tol_chi2 * infl
                 th, st, f = tn, sn, fn
                 mu = max(mu / 3.0, 1e-9)
                 break
@@ -144,6 +157,9 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
             break
         if rel < tol:
             status = "Converged"
+            break
+        if small:
+            status = "Converged (step below its std)"
             break
     return {"state": st, "status": status, "iterations": it, "history": hist, "success": status.startswith("Converged"),
             "f": float(f), "at_bound": [n for i, n in enumerate(model.glob)

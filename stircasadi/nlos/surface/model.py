@@ -135,11 +135,15 @@ class SurfaceModel:
         response's width are not reduced to one moment-matched Gaussian.
     direct : per-trace amplitude q_p of the relay's own return (its slow decay enters the
         background), or None.
+    workers : threads over the trace chunks of ``predict`` / ``linearise`` (the compiled
+        geometry, NumPy's ufuncs and BLAS release the GIL); the chunks' sums are added in chunk
+        order, so the numbers are the same bit for bit whatever the count (memory: a chunk per
+        worker).
     """
 
     def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
                  fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
-                 direct: np.ndarray | None = None):
+                 direct: np.ndarray | None = None, workers: int = 1):
         if brdf not in BRDFS:
             raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
         if brdf == "retroreflective" and not relay.confocal:
@@ -166,6 +170,7 @@ class SurfaceModel:
             shape = ["sigma"] + (["tail"] if self.kind == "emg" else []) + [f"beta{i}" for i in range(len(self.taus))]
         self.glob = shape + ["bg"] + (["bg1", "bgtau"] if self.direct is not None else [])
         self.chunk_bytes = int(chunk_bytes)
+        self.workers = max(1, int(workers))
         self.sub = max(1, int(subsamples))
         self._build()
         self._maps: dict = {}
@@ -340,6 +345,29 @@ class SurfaceModel:
         for t0 in range(0, self.P, nt):
             yield t0, min(t0 + nt, self.P)
 
+    def _each_chunk(self, fn, per_trace_bytes: int):
+        """``fn(t0, t1)`` over the trace chunks, results yielded in chunk order: on
+        ``self.workers`` threads (at most one chunk ahead per worker in flight), else serially."""
+        chunks = list(self._chunks(per_trace_bytes))
+        if self.workers == 1 or len(chunks) == 1:
+            for c in chunks:
+                yield fn(*c)
+            return
+        from collections import deque
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="surface-chunk") as ex:
+            todo, running = iter(chunks), deque()
+            for c in todo:
+                running.append(ex.submit(fn, *c))
+                if len(running) >= 2 * self.workers:
+                    break
+            while running:
+                out = running.popleft().result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    running.append(ex.submit(fn, *nxt))
+                yield out
+
     # ------------------------------------------------------------------ evaluation
     def _local(self, z):
         """The six local unknowns of every node's patch (``ops`` applied to the depths)."""
@@ -360,9 +388,13 @@ class SurfaceModel:
         loc = self._local(st.z)
         out = np.empty((self.P, self.T))
         S = len(self.offsets)
-        for t0, t1 in self._chunks(self.N * S * 8 * 64):
+
+        def one(t0, t1):
             G = self._core(st, resp, t0, t1, loc)
             out[t0:t1] = self.background(st, t0, t1)[0] + resp.tail_filter(G, self.w)
+
+        for _ in self._each_chunk(one, self.N * S * 8 * 64):
+            pass
         return out
 
     def _rows(self, pe, kk):
@@ -389,7 +421,8 @@ class SurfaceModel:
         chi2 = 0.0
         itemsize = np.dtype(dtype).itemsize
         slow = bool(resp.slow)
-        for t0, t1 in self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
+
+        def one(t0, t1):
             nt = t1 - t0
             G, Jg = self._geometry(t0, t1, lz, True)
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
@@ -410,7 +443,7 @@ class SurfaceModel:
             rc = mc - y[t0:t1]
             wc = wgt[t0:t1]
             m[t0:t1] = mc
-            chi2 += float(np.sum(wc * rc * rc))
+            chi2c = float(np.sum(wc * rc * rc))
             # local derivatives (E,), summed over the sub-samples: the six patch unknowns, rho
             #   d m / d p_c = sum_s rho B dA_c + rho A (s dF1 ds_c - dF dtau_c): the window bins'
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
@@ -445,12 +478,18 @@ class SurfaceModel:
             node = pe % N
             er = ef.ravel()[rows_loc]
             gl = np.stack([np.bincount(node, loc[c] * er, minlength=N) for c in range(7)])
-            g[:N] += gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
-            g[N:2 * N] += gl[6]
+            gc = np.zeros(npar)
+            gc[:N] = gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
+            gc[N:2 * N] = gl[6]
             gcols = [float(np.sum(c * ef)) for c in pre] + [float(np.sum(c * e)) for c in post]
-            g[2 * N:] += gcols
+            gc[2 * N:] = gcols
+            return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
+        # the chunks' sums in chunk order (the same numbers on any number of workers)
+        for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
+            chi2 += chi2c
+            g += gc
             if need_h:
-                H += self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype)
+                H += Hc
         return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}
 
     def _gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype) -> np.ndarray:

@@ -59,6 +59,10 @@ class SurfaceSettings:
     max_iter: int = 30
     #: convergence: relative decrease of the objective below which LM stops (IPOPT: its tol)
     tol: float = 1e-6
+    #: LM also stops when a step lowered the whitened chi^2 (plus prior) by less than tol_chi2 x
+    #: max(1, chi2/dof) and its quadratic model predicted no more: that step moved the unknowns
+    #: by less than sqrt(tol_chi2) of their inflated std (jointly, in the Fisher metric); 0: off
+    tol_chi2: float = 1.0
     #: noise std per bin (data units); None: the relay's sigma, Poisson for counts, else
     #: estimated from the data (MAD of first differences)
     noise_sigma: float | None = None
@@ -70,6 +74,10 @@ class SurfaceSettings:
     #: memory of one chunk of Jacobian rows (MiB); the fit's peak memory is a few chunks plus
     #: the (2 nodes + 4)^2 Gauss-Newton matrix
     chunk_mb: float = 192.0
+    #: threads over the trace chunks of the model's evaluations and Gauss-Newton products (the
+    #: numbers do not depend on it); None: the CPUs this process may use, at most 4, or 1 where
+    #: the environment sets OMP_NUM_THREADS=1 (one core per process, as the studies' workers run)
+    threads: int | None = None
     #: precision of the Gauss-Newton products of the solver's steps ("float32" or "float64");
     #: the Fisher covariance is always accumulated from float64 products
     step_precision: str = "float32"
@@ -119,11 +127,28 @@ class SurfaceSettings:
         if self.max_iter < 1 or not (self.chunk_mb >= 1):
             raise ReconstructionError(f"max_iter must be >= 1 and chunk_mb >= 1; got {self.max_iter!r}, "
                                       f"{self.chunk_mb!r}.")
+        if self.threads is not None and not (1 <= int(self.threads) <= 64):
+            raise ReconstructionError(f"threads must be within 1..64 or None; got {self.threads!r}.")
+        if not (self.tol_chi2 >= 0):
+            raise ReconstructionError(f"tol_chi2 must be >= 0; got {self.tol_chi2!r}.")
         if not (0 < self.init_fraction <= 1):
             raise ReconstructionError(f"init_fraction must be within (0, 1]; got {self.init_fraction!r}.")
         if not (0 <= self.margin <= 2):
             raise ReconstructionError(f"margin must be within [0, 2]; got {self.margin!r}.")
         return self
+
+    def n_threads(self) -> int:
+        """``threads``, or the default it stands for (see the field)."""
+        if self.threads is not None:
+            return int(self.threads)
+        import os
+        if os.environ.get("OMP_NUM_THREADS", "").strip() == "1":
+            return 1
+        try:
+            n = len(os.sched_getaffinity(0))
+        except (AttributeError, OSError):
+            n = os.cpu_count() or 1
+        return max(1, min(4, n))
 
     @classmethod
     def from_options(cls, **options) -> "SurfaceSettings":
