@@ -332,6 +332,23 @@ def test_discrepancy_weight_on_a_linear_problem_is_the_exact_one_from_any_start(
     k = lams.index(picks[0])
     assert chi2(np.linalg.solve(H + lams[k] * R, J.T @ y)) <= target
     assert chi2(np.linalg.solve(H + lams[k + 1] * R, J.T @ y)) > target
+    # a mis-specified problem (the noise 2.2x the weights' std: chi2_min ~ 5 dof, as on the real
+    # chart): from a start whose small-weight steps are long, with every step trusted the choice is
+    # not slack-bound; with a slack shorter than those steps it is, its reference chi^2 is a
+    # heavily regularised step's, its weight larger, and the weight it reports as unbounded is the
+    # trusted choice
+    ym = y + 2.0 * rng.standard_normal(n)
+    z0 = np.zeros(N)        # its unregularised step is ~3 long, the heaviest weights' ~1
+    g = J.T @ (J @ z0 - ym)
+    c0 = float(np.sum((J @ z0 - ym) ** 2))
+    free, bound = {}, {}
+    lam_f, _ = _choose_lambda(H, g, c0, dof, R, N, 0.0, z0, out_info=free)
+    lam_b, _ = _choose_lambda(H, g, c0, dof, R, N, 0.0, z0, slack=1.5, out_info=bound)
+    zm = np.linalg.solve(H, J.T @ ym)
+    assert free["c_ref"] == pytest.approx(float(np.sum((J @ zm - ym) ** 2)), rel=1e-9) and free["c_ref"] > 3 * dof
+    assert not free["slack_bound"] and free["lam_unbounded"] == lam_f
+    assert bound["slack_bound"] and bound["c_ref"] > free["c_ref"] and lam_b > lam_f
+    assert bound["lam_unbounded"] == lam_f
 
 
 def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
@@ -354,6 +371,11 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
     assert lv[0]["solves"][0]["lam"] == 0.0 and lv[0]["lam_next"] > 0
     assert lv[1]["solves"][0]["lam"] == lv[0]["lam_next"] and lv[1]["lam_next"] > 0
     assert lv[2]["solves"][0]["lam"] == lv[1]["lam_next"] and res.prior_weight > 0 and "lambda_curve" in lv[2]
+    # each choice says what it compared against; the result carries the last one
+    for l in lv:
+        assert [c["lam"] for c in l["lambda_choice"]][0] == l.get("lam_next", l["lambda_choice"][0]["lam"])
+        assert all(c["target"] >= c["c_ref"] and c["lam_unbounded"] >= 0 for c in l["lambda_choice"])
+    assert res.extras["prior_choice"] == lv[2]["lambda_choice"][-1]
     # every solve's history (f before, f after, predicted decrease, damping, largest depth step):
     # each accepted step lowers F, the steps chain, the last is the solve's F, and the quadratic
     # model's predicted decrease is what the step delivered once the steps are small

@@ -162,7 +162,7 @@ def _window(relay: Relay, grid: DepthGrid, z0, resp_hi: Response, cell: float, p
     return relay.window(lo, hi_d + b + pad + slow_pad)
 
 
-def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf):
+def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf, out_info=None):
     """Discrepancy principle on the linearised problem at the current solution ``z``: for each
     candidate weight lam, the linearised minimiser of chi^2 + lam z^T R z (step d from
     (H + lam R) d = -(g + lam R z)) and its predicted data chi^2; the largest lam whose chi^2
@@ -170,7 +170,15 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf):
     is the lowest prediction among the steps the linearisation holds for (depth changes within
     ``slack``) and the chi^2 reached: on a fine grid whose solve has not converged the
     unregularised Gauss-Newton step is metres long and its predicted chi^2 far below anything a
-    step reaches, which would leave no weight passing."""
+    step reaches, which would leave no weight passing.
+
+    ``out_info`` (a dict) receives ``c_ref`` and ``target``, ``slack_bound`` (c_ref is above the
+    lowest prediction of all candidates: the weights whose steps leave the slack were set aside)
+    and ``lam_unbounded``, the weight the same rule gives with every candidate's step trusted. A
+    slack-bound choice is set by how far the state is from the fit's minimum, not by the noise:
+    on the real resolution chart after 12 iterations per level the 8 x 8 weight 4 084 keeps the
+    linearised chi2/dof at 5.93 against 5.12 at weight 0 (the rule's tolerance is 1.3 %), and its
+    16 x 16 weight 38 at 3.50 against 3.34."""
     npar = H.shape[0]
     Rf = np.zeros_like(H)
     Rf[:N, :N] = R
@@ -198,8 +206,16 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf):
             valid.append(c)
     if not out:
         return lam_now, []
-    target = max(min(valid), dof) * (1 + 2 * math.sqrt(2.0 / max(dof, 1)))
+    tol = 1 + 2 * math.sqrt(2.0 / max(dof, 1))
+    target = max(min(valid), dof) * tol
     ok = [lam for lam, c in out if c <= target]
+    if out_info is not None:
+        lowest = min(c for _, c in out)
+        t_all = max(min(lowest, chi2), dof) * tol
+        ok_all = [lam for lam, c in out if c <= t_all]
+        out_info.update({"c_ref": float(min(valid)), "target": float(target),
+                         "slack_bound": bool(min(valid) > min(lowest, chi2) * (1 + 1e-12)),
+                         "lam_unbounded": float(max(ok_all)) if ok_all else 0.0})
     return (max(ok) if ok else 0.0), out
 
 
@@ -301,9 +317,11 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 break
             lin = model.linearise(state, y, wgt, dtype=np.float64)
             dof = max(int(y.size) - model.npar, 1)
+            ci = {}
             new_lam, curve = _choose_lambda(lin["H"], lin["g"], lin["chi2"], dof, R, grid.n, lam,
-                                               state.z, 4.0 * slack)
+                                               state.z, 4.0 * slack, out_info=ci)
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
+            info.setdefault("lambda_choice", []).append(ci | {"lam": float(new_lam)})
             if not last:
                 # the penalty sum (Lap z / h)^2 (Lap: unit-spacing stencil, ~ h^2 del^2 z) is the
                 # integral of (del^2 z)^2 over the extent whatever the spacing, so a coarse
@@ -435,6 +453,10 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,
+                # the last discrepancy choice (prior="auto"): its reference chi^2, target, whether
+                # the slack bound it (then the weight reflects the solve's progress, not the noise)
+                "prior_choice": next((lv["lambda_choice"][-1] for lv in reversed(levels)
+                                      if lv.get("lambda_choice")), None),
                 "slow_tails": [[t, b] for t, b in resp.slow],
                 "background_decay": None if model.direct is None else
                 {"amplitude": state.bg1, "length_m": state.bgtau},
