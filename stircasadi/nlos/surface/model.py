@@ -347,7 +347,8 @@ class SurfaceModel:
 
     def _each_chunk(self, fn, per_trace_bytes: int):
         """``fn(t0, t1)`` over the trace chunks, results yielded in chunk order: on
-        ``self.workers`` threads (at most one chunk ahead per worker in flight), else serially."""
+        ``self.workers`` threads (at most two chunks per thread submitted and not yet consumed,
+        which bounds the memory of results waiting for their turn), else serially."""
         chunks = list(self._chunks(per_trace_bytes))
         if self.workers == 1 or len(chunks) == 1:
             for c in chunks:
