@@ -14,7 +14,9 @@ ours on the same grid and on 32 x 32 x 121 and 64 x 64 x 121. The surface fit ru
 resolution chart (wall_step 4: 16 x 16 traces of 16 ps, the measured response and background
 decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps; ``--prior auto``
 sets the smoothness prior's weight by the discrepancy principle (without a prior a 32 x 32 grid
-over 16 x 16 traces is ill-posed).
+over 16 x 16 traces is ill-posed). The fit runs on ``SurfaceSettings.threads`` threads (default:
+the process's CPUs, at most 4, or 1 under OMP_NUM_THREADS=1; ``--threads``), ``--max-iter`` LM
+iterations per level (default 12); each row records both.
 """
 from __future__ import annotations
 
