@@ -128,7 +128,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
                         "lam": [x["lam"] for x in lv["solves"]],
                         # chi^2 + prior removed by each solve's last step (>> 1: not converged)
                         "last_drop": [last_decrease(x) for x in lv["solves"]],
-                        "status": [x["status"] for x in lv["solves"]], "lam_check": lv.get("lam_check"),
+                        "status": [x["status"] for x in lv["solves"]],
                         "wall_time_s": lv["wall_time_s"]} for lv in s.levels]}
 
 
