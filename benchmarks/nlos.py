@@ -34,7 +34,7 @@ import numpy as np
 
 from stircasadi.acquisition.importers import read_stanford_lct
 from stircasadi.datasets import data_dir
-from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct, plane_fit
+from stircasadi.nlos import VolumeSettings, Volume, backprojection, estimate_capture, fk, from_capture, lct
 from stircasadi.nlos.surface import SurfaceSettings
 from stircasadi.nlos.surface.lm import last_decrease
 
@@ -100,13 +100,14 @@ def ytal_bp(cap, cg, n, nz):
 
 
 def plane_of(s):
-    """Albedo-weighted plane through the surface mask: depth on the scan's axis, tilt (deg)."""
-    return plane_fit(s.points()[s.mask], s.albedo[s.mask])
+    """The plane through the surface mask weighted by the nodes' precision (1 / depth std^2,
+    ``SurfaceResult.plane``): depth on the scan's axis, tilt (deg)."""
+    return s.plane()
 
 
 def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
-    the process's maximum resident memory, the albedo-weighted plane through the mask."""
+    the process's maximum resident memory, the precision-weighted plane through the mask."""
     import resource
 
     cap = read_stanford_lct(data_dir() / "otoole2018_confocal" / CHARTS["resolution"])

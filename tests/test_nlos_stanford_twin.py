@@ -20,7 +20,7 @@ import pytest
 from nlos_twins import stanford_twin
 from stircasadi.acquisition.importers import read_stanford_lct
 from stircasadi.errors import ReconstructionError
-from stircasadi.nlos import estimate_capture, from_capture, plane_fit
+from stircasadi.nlos import estimate_capture, from_capture
 from stircasadi.nlos.onset import onset_depths
 
 DEPTH = 0.400
@@ -51,7 +51,7 @@ def test_surface_fit_on_the_twin(twin):
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
                            wall_step=4, n_nodes=12, levels=2, max_iter=12, subsamples=1, brdf=brdf)
     s = est.surface
-    z0, tilt = plane_fit(s.points()[s.mask], s.albedo[s.mask])
+    z0, tilt = s.plane()
     assert s.mask.sum() >= 30
     assert abs(z0 - DEPTH) < 1e-3 and tilt < 0.5
     assert s.chi2_dof < 1.2

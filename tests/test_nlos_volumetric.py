@@ -103,29 +103,33 @@ def test_stanford_40cm_charts_depth(name, method):
 
 @pytest.mark.parametrize("name", ["data_resolution_chart_40cm.mat", "data_dot_chart_40cm.mat"])
 def test_stanford_40cm_charts_surface_fit(name):
-    """The surface fit on the 40 cm charts (16 x 16 traces of 16 ps, 12 x 12 nodes from 6 x 6,
-    the response and background decay measured on the direct return, Lambertian), against the
-    chart's stated distance and f-k's depth map (independent method).
+    """The surface fit on the 40 cm charts (16 x 16 traces of 16 ps, each the sum of a 4 x 4 block
+    of scan points, modelled with the block's footprint; 12 x 12 nodes from 6 x 6, the default
+    sub-samples; the response and background decay measured on the direct return, Lambertian),
+    against the charts' rising edges (``nlos.onset``, no model), f-k's depth map (independent
+    method) and the response measured on the direct return.
 
-    Measured (resolution / dot; 2026-12-01 on nlos3, and the same at df0b597): plane depth on the
-    scan axis 0.4078 / 0.4101 m, tilt 4.6 / 6.1 deg, chi2/dof 4.09 / 3.09, 48 / 31 mask nodes; f-k's plane through its bright columns 0.4041 / 0.4048 m, tilt 2.1 /
-    2.5 deg; the response measured on the direct return: FWHM 17.0 mm of path (57 ps; the paper
-    states ~60 ps), 80 % of its counts in tails of 2.6 and 10 cm. A Gaussian response, a constant
-    background and the volume's 6-MAD mask as extent gave 0.447 m and 25 deg.
+    Measured (resolution / dot, 2026-12-03): the plane through the mask weighted by the nodes'
+    precision (``SurfaceResult.plane``) at 0.4062 / 0.4076 m on the scan axis, tilt 1.9 / 2.4 deg
+    (the issue asks for within 5 deg); the rising edges 0.4068 / 0.4061 m; f-k's plane 0.4041 /
+    0.4048 m, tilt 2.1 / 2.5 deg; chi2/dof 3.91 / 2.94; the fitted core sigma 4.00 / 4.74 mm
+    against 4.60 / 4.62 mm measured on the direct return (with 4 x 4 sub-samples per node
+    4.47 / 4.90 mm: moment-matched cells wider than the response overstate the spread of a
+    patterned chart, so the core comes out narrower). The albedo-weighted plane tilts 2.0 /
+    10.2 deg: on the dot chart bright nodes between the rows of dots sit 2.5-7 cm deep with a
+    std of 0.8-2.5 mm. Without the footprint (each block one point): chi2/dof 3.98 / 3.04.
 
-    Why not 0.40 m (the issue's goal, within 2 mm): the charts' own rising edges, read without
-    any radiometric, background or response-shape model (``nlos.onset``: the steepest rise of
-    2 x 2 blocks at 4 ps), lie at 0.4068 / 0.4061 m, and the same reading returns 0.4000 m on a
-    twin of the release at 0.400 m (``test_nlos_stanford_twin.py``, where the surface fit returns
-    0.4005 m). The direct peak sits 0.76 / 0.61 mm of path before t = 0 (twin: 0.46 mm), so
-    t = 0 is the wall's peak to a fraction of a bin, and the bin-edge convention is right. On the
-    same release's 65 cm charts (not in ../shared/data; read from the third-party re-upload,
-    commit 3613ea5, outside the repository) the rising edges lie at 0.6523 / 0.6483 m: a
-    constant timing offset between the wall's return and the hidden return would shift both
-    distances alike, so the +6 to +7 mm at 40 cm is where the charts are under the files' own
-    t = 0 (their stated distance is nominal), not a convention of the fit. The fit agrees with
-    the rising edges within 1.0 / 4.0 mm; asserting 0.40 +- 2 mm would need an offset the data
-    do not support."""
+    Why not 0.40 m (the issue's goal, within 2 mm): the charts' own rising edges lie at 0.4068 /
+    0.4061 m, and the same reading returns 0.4000 m on a twin of the release at 0.400 m
+    (``test_nlos_stanford_twin.py``, where the surface fit returns 0.4005 m). The direct peak
+    sits 0.76 / 0.61 mm of path before t = 0 (twin: 0.46 mm), so t = 0 is the wall's peak to a
+    fraction of a bin, and the bin-edge convention is right. On the same release's 65 cm charts
+    (not in ../shared/data; read from the third-party re-upload, commit 3613ea5, outside the
+    repository) the rising edges lie at 0.6523 / 0.6483 m: a constant timing offset between the
+    wall's return and the hidden return would shift both distances alike, so the +6 to +7 mm at
+    40 cm is where the charts are under the files' own t = 0 (their stated distance is nominal),
+    not a convention of the fit. Asserting 0.40 +- 2 mm would need an offset the data do not
+    support; the fit is asserted within 2 mm of the rising edges instead."""
     f = STANFORD / name
     if not f.exists():
         pytest.skip(f"data file absent: {f}")
@@ -134,21 +138,23 @@ def test_stanford_40cm_charts_surface_fit(name):
 
     cap = read_stanford_lct(f)
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
-                           wall_step=4, n_nodes=12, levels=2, max_iter=12, subsamples=1)
+                           wall_step=4, n_nodes=12, levels=2, max_iter=12)
     s = est.surface
     assert s.response == "gaussian" and len(s.extras["slow_tails"]) == 2
-    assert abs(s.fwhm_irf - 0.018) < 0.2 * 0.018
-    z0, tilt = plane_fit(s.points()[s.mask], s.albedo[s.mask])
+    sig_direct = s.extras["response_start"]["sigma"]
+    assert abs(sig_direct - 0.0046) < 0.1 * 0.0046              # FWHM ~57 ps with its tails
+    assert abs(s.sigma_irf - sig_direct) < 0.2 * sig_direct
+    z0, tilt = s.plane()
     m = fk(from_capture(cap), VolumeSettings(bin_factor=4, diffuse=False, t_max=1.6)).maps(z_min=0.2)
     sel = m.albedo > 0.3
     z_fk, tilt_fk = plane_fit(m.points()[sel], m.albedo[sel])
     assert s.mask.sum() >= 20 and s.chi2_dof < 6
     assert 0.400 <= z0 < 0.413 and abs(z0 - z_fk) < 0.008
-    assert tilt < 8.0 and tilt_fk < 4.0
+    assert tilt < 5.0 and tilt_fk < 4.0
     from stircasadi.nlos.onset import onset_depths
     edge = onset_depths(from_capture(cap), 0.72, 1.0)
     assert 0.405 < edge.median < 0.408 and abs(edge.direct_peak) < cap.grid.bin_width
-    assert abs(z0 - edge.median) < 0.005
+    assert abs(z0 - edge.median) < 0.002
 
 
 def test_plane_fit_closed_form_with_outliers():

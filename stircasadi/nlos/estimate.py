@@ -67,7 +67,8 @@ class NLOSEstimate:
 
 def subsample_confocal(relay: Relay, step: int) -> Relay:
     """Every ``step``-th point per side of a regular confocal scan, summing the step x step block
-    of traces it stands for (the counts of the block, so Poisson weights stay valid)."""
+    of traces it stands for (the counts of the block, so Poisson weights stay valid); the block's
+    spread of scan points is the trace's ``footprint``."""
     if step <= 1:
         return relay
     from .relay import confocal_grid
@@ -84,9 +85,13 @@ def subsample_confocal(relay: Relay, step: int) -> Relay:
     yy, xx = np.meshgrid(ys, xs, indexing="ij")
     P = c[None] + xx.reshape(-1, 1) * u + yy.reshape(-1, 1) * v
     nrm = np.tile(w, (n * n, 1))
+    # the block's scan points spread the trace's delays: their variance along u and v (a
+    # discrete uniform of step points at the scan's spacing), modelled like a node's cell
+    var = [((a[-1] - a[0]) / (len(a) - 1)) ** 2 * (step ** 2 - 1) / 12.0 for a in (cg.x, cg.y)]
     return Relay(d.reshape(n * n, -1), relay.grid, P, P.copy(), nrm, nrm.copy(), np.zeros(n * n),
                  np.full(n * n, float(np.mean(relay.gain))), None if relay.sigma is None else
-                 float(np.mean(relay.sigma)) * step, relay.irf, True, relay.frame, dict(relay.meta))
+                 float(np.mean(relay.sigma)) * step, relay.irf, True, relay.frame, dict(relay.meta),
+                 np.tile(var, (n * n, 1)))
 
 
 def _is_regular_confocal(relay: Relay) -> bool:
@@ -173,4 +178,4 @@ def _rebin(relay: Relay, f: int) -> Relay:
     if sig is not None:
         sig = float(np.mean(sig)) * np.sqrt(f)
     return Relay(tr, g, relay.L, relay.D, relay.nL, relay.nD, relay.leg, relay.gain, sig, relay.irf,
-                 relay.confocal, relay.frame, dict(relay.meta))
+                 relay.confocal, relay.frame, dict(relay.meta), relay.footprint)

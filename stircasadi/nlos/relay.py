@@ -60,6 +60,10 @@ class Relay:
     irf : the sensor's impulse response object when the capture states one (else None: fitted).
     confocal : whether L == D for every trace.
     frame : (centre, u, v, w) of the relay plane, w into the hidden scene.
+    footprint : (P, 2) variance (m^2) of the trace's relay spots along the frame's ``u`` and
+        ``v`` when one trace sums the returns of several scan points (laser and detection spot
+        moving together; ``nlos.estimate.subsample_confocal``: s^2 (k^2 - 1) / 12 for k x k
+        points of spacing s); None: zeros (one scan point per trace).
     """
 
     traces: np.ndarray
@@ -75,6 +79,7 @@ class Relay:
     confocal: bool = False
     frame: tuple = field(default=None)
     meta: dict = field(default_factory=dict)
+    footprint: np.ndarray | None = None
 
     def __post_init__(self):
         self.validate()
@@ -97,6 +102,11 @@ class Relay:
             if not np.all(np.isfinite(a)):
                 raise ReconstructionError(f"Relay field '{name}' must be finite.")
             setattr(self, name, a)
+        fp = np.zeros((P, 2)) if self.footprint is None else np.asarray(self.footprint, float)
+        if fp.shape != (P, 2) or not np.all(np.isfinite(fp)) or np.any(fp < 0):
+            raise ReconstructionError(f"Relay field 'footprint' must be ({P}, 2) finite variances >= 0 (m^2); "
+                                      f"got shape {fp.shape}.")
+        self.footprint = fp
         if self.frame is None:
             self.frame = plane_frame(np.vstack([self.L, self.D]),
                                      None if P == 0 else np.vstack([self.L, self.D]).mean(0)
@@ -115,7 +125,7 @@ class Relay:
             sig = sig[idx]
         return Relay(self.traces[idx], self.grid, self.L[idx], self.D[idx], self.nL[idx],
                      self.nD[idx], self.leg[idx], self.gain[idx], sig, self.irf,
-                     self.confocal, self.frame, dict(self.meta))
+                     self.confocal, self.frame, dict(self.meta), self.footprint[idx])
 
     def window(self, t_lo: float, t_hi: float) -> "Relay":
         """The relay with its time axis cut to the bins inside [t_lo, t_hi)."""
@@ -130,7 +140,7 @@ class Relay:
             sig = sig[:, k0:k1]
         grid = TimeGrid(g.start + k0 * g.bin_width, g.bin_width, k1 - k0)
         return Relay(self.traces[:, k0:k1], grid, self.L, self.D, self.nL, self.nD, self.leg,
-                     self.gain, sig, self.irf, self.confocal, self.frame, dict(self.meta))
+                     self.gain, sig, self.irf, self.confocal, self.frame, dict(self.meta), self.footprint)
 
 
 def _capture_sigma(capture):

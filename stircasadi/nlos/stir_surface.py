@@ -167,7 +167,8 @@ def third_bounce_relay(capture, visible: VisiblePatches, ill_step: int = 1, obs_
 
 def _with_frame(relay: Relay, frame) -> Relay:
     return Relay(relay.traces, relay.grid, relay.L, relay.D, relay.nL, relay.nD, relay.leg,
-                 relay.gain, relay.sigma, relay.irf, relay.confocal, frame, dict(relay.meta))
+                 relay.gain, relay.sigma, relay.irf, relay.confocal, frame, dict(relay.meta),
+                 relay.footprint)
 
 
 def matched_score(relay: Relay, X: np.ndarray, chunk: int = 64) -> np.ndarray:

@@ -350,7 +350,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         prev = grid
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
-                   relay.n_traces, t_start, (relay, gate, q_dir), lin)
+                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0)
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -374,7 +374,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
 
 
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
-            t_start, full=None, lin=None) -> SurfaceResult:
+            t_start, full=None, lin=None, start=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
     steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is."""
     grid = model.grid
@@ -450,6 +450,10 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
         tail_std=gstd.get("tail"), brdf=st.brdf, fwhm_irf=resp.fwhm(),
         extras={"noise": noise_src, "window": [rl.grid.start, rl.grid.end], "n_traces": n_traces,
                 "response": resp.describe(), "background_std": gstd.get("bg"),
+                # the response the fit started from (measured on the relay's direct return when
+                # it holds one): an independent check of the fitted core
+                "response_start": None if start is None else {"sigma": start.sigma, "tail": start.tail,
+                                                              "describe": start.describe()},
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,

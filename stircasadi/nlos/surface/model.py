@@ -8,7 +8,8 @@ Model of trace p, bin k (left edge t_k, width w):
 
     m_pk = b_pk + Phi[ sum_n rho_n A_pn B(t_k - tau_pn; s_pn) ]_k,   s_pn^2 = sigma^2 + c_pn^2,
 
-with the amplitude A (at unit albedo), delay tau and cell variance c^2 from ``physics.py`` at the
+with the amplitude A (at unit albedo), delay tau and cell variance c^2 (plus the trace's
+footprint variance where a trace sums several scan points) from ``physics.py`` at the
 node's position and normal (``grid.py``: each node's cell is the second-order patch of its
 depth, gradients gx = Gx z, gy = Gy z and curvatures zxx, zyy, zxy from second differences), B the bin integral of the response's core and Phi its slow tails applied along each
 trace (``response.py``; the core's width and tail and the slow tails' weights are global
@@ -42,7 +43,7 @@ import scipy.sparse as sp
 from ...errors import ReconstructionError
 from ..relay import Relay
 from .grid import DepthGrid
-from .physics import BRDFS, cell_variance, relay_amplitude, relay_delay
+from .physics import BRDFS, cell_variance, footprint_variance, relay_amplitude, relay_delay
 from .response import Response
 
 __all__ = ["SurfaceModel", "SurfaceState"]
@@ -172,6 +173,7 @@ class SurfaceModel:
         self.chunk_bytes = int(chunk_bytes)
         self.workers = max(1, int(workers))
         self.sub = max(1, int(subsamples))
+        self.footprint = bool(np.any(relay.footprint > 0))
         self._build()
         self._maps: dict = {}
 
@@ -229,9 +231,9 @@ class SurfaceModel:
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
         p = ca.SX.sym("p", 6)          # z, gx, gy, zxx, zyy, zxy of the node
-        q = ca.SX.sym("q", 19)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain dx dy
+        q = ca.SX.sym("q", 21)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain fu2 fv2 dx dy
         z, gx0, gy0, zxx, zyy, zxy = (p[i] for i in range(6))
-        dx, dy = q[17], q[18]
+        dx, dy = q[19], q[20]
         # the sub-sample at in-plane offset (dx, dy) lies on the node's second-order patch
         gx = gx0 + zxx * dx + zxy * dy
         gy = gy0 + zxy * dx + zyy * dy
@@ -244,13 +246,15 @@ class SurfaceModel:
         amp = relay_amplitude(L, D, q[9:12], q[12:15], X, nX, area, 1.0, q[16], brdf=self.brdf)
         tau = relay_delay(L, D, X, q[15])
         c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx, hy)
+        if self.footprint:     # a trace summing several scan points (Relay.footprint)
+            c2 = c2 + footprint_variance(L, D, X, u, v, q[17], q[18])
         out = ca.vertcat(amp, tau, c2)
         # the same function with q split into the sub-sample's own numbers nd = (Xb, dx, dy)
-        # and the trace's tr = (L, D, nL, nD, leg, gain): mapped over a trace's node samples with
-        # tr shared, then over the traces with p and nd shared, so the inputs are (6 + 5) x N S +
-        # 14 x traces numbers instead of 25 x traces x N S (converting those took longer than
-        # evaluating the map)
-        nd, tr = ca.SX.sym("nd", 5), ca.SX.sym("tr", 14)
+        # and the trace's tr = (L, D, nL, nD, leg, gain, footprint): mapped over a trace's node
+        # samples with tr shared, then over the traces with p and nd shared, so the inputs are
+        # (6 + 5) x N S + 16 x traces numbers instead of 27 x traces x N S (converting those took
+        # longer than evaluating the map)
+        nd, tr = ca.SX.sym("nd", 5), ca.SX.sym("tr", 16)
         q_of = ca.vertcat(nd[0:3], tr, nd[3:5])
         jac = ca.vertcat(out, ca.vec(ca.jacobian(out, p)))
         self.f_geo = _compiled(ca.Function("pair_geometry", [p, nd, tr], [ca.substitute(out, q, q_of)]))
@@ -285,7 +289,8 @@ class SurfaceModel:
         Xb = np.repeat(self.base, S, axis=0) + off[:, :1] * u[None] + off[:, 1:] * v[None]
         nd = np.ascontiguousarray(np.hstack([Xb, off]))                            # (N S, 5)
         tr = np.ascontiguousarray(np.hstack([r.L[t0:t1], r.D[t0:t1], r.nL[t0:t1], r.nD[t0:t1],
-                                             r.leg[t0:t1, None], r.gain[t0:t1, None]]))  # (nt, 14)
+                                             r.leg[t0:t1, None], r.gain[t0:t1, None],
+                                             r.footprint[t0:t1]]))                       # (nt, 16)
         out = np.empty((nt * N * S, 21 if jac else 3))
         buf, run = self._mapped(N * S, nt, jac).buffer()
         for i, a in enumerate((Pm, nd, tr)):

@@ -61,6 +61,27 @@ class SurfaceResult:
         w = self.grid.frame[3]
         return np.abs(w)[None, None, :] * self.depth_std[..., None]
 
+    def plane(self, weights: str = "precision") -> tuple[float, float]:
+        """The plane through the mask's nodes (``nlos.volume.plane_fit``, in the grid's frame):
+        its depth along ``w`` where it crosses the frame's axis (metres) and its tilt from ``w``
+        (degrees). ``weights``: "precision" (1 / depth_std^2: the generalised least-squares plane
+        of nodes with their stated error bars, so a node the data barely constrain counts
+        little) or "albedo". On the Stanford 40 cm dot chart (12 x 12 nodes) the albedo-weighted
+        plane tilts 10 deg, held by bright nodes between the rows of dots whose depths are
+        2.5-7 cm off with a std of 0.8-2.5 mm; the precision-weighted one 2.4 deg, as f-k's.
+        Raises ``ValueError`` with fewer than 3 mask nodes."""
+        from ..volume import plane_fit
+
+        m = self.mask
+        if weights == "precision":
+            wts = 1.0 / np.maximum(self.depth_std[m], 1e-12) ** 2
+        elif weights == "albedo":
+            wts = self.albedo[m]
+        else:
+            raise ValueError(f"weights must be 'precision' or 'albedo'; got {weights!r}.")
+        yy, xx = np.meshgrid(self.grid.y, self.grid.x, indexing="ij")
+        return plane_fit(np.stack([xx[m], yy[m], self.depth[m]], axis=1), wts)
+
     def summary(self) -> dict:
         m = self.mask
         return {"nodes": list(self.shape), "mask_nodes": int(m.sum()),
