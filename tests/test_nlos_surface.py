@@ -543,6 +543,36 @@ def test_a_solve_cut_by_its_iteration_limit_says_how_far_it_was_from_converging(
     assert len(msg) == 1 and f"{drop:.4g}" in msg[0]
 
 
+def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted_plane, monkeypatch):
+    """Two levels on the tilted plane, the coarse (4 x 4) solve cut after one LM iteration, the
+    last (6 x 6) one converging: the coarse level's status is recorded in ``extras["notes"]``
+    (with how far it was from converging) and not in ``reasons`` (the result is the last
+    level's, judged by its own solve and checks); the last level's converged status leaves no
+    solver reason."""
+    import stircasadi.nlos.surface.fit as F
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    calls, solve = [], F.solve_lm
+
+    def first_cut(model, y, wgt, state, lam, R, bounds, slack, max_iter, *a, **k):
+        calls.append(model.N)
+        return solve(model, y, wgt, state, lam, R, bounds, slack, 1 if len(calls) == 1 else max_iter, *a, **k)
+
+    monkeypatch.setattr(F, "solve_lm", first_cut)
+    res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=2, known_gain=True, sigma0=0.01,
+                                                   max_iter=40), gate=0.2)
+    assert calls == [16, 36]
+    assert res.levels[0]["status"] == "Maximum_Iterations_Exceeded" and res.levels[1]["success"]
+    assert not any(r.startswith("level") for r in res.reasons)
+    note = [n for n in res.extras["notes"] if n.startswith("level 0 (4x4)")]
+    assert len(note) == 1 and "not converged" in note[0] and "only starts the next one" in note[0]
+
+
 def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilted_plane):
     """``tol_chi2`` = 1 on the tilted plane (one level, no prior): LM stops with "Converged (step
     below its std)" when a step's chi^2 decrease and its predicted one are both below

@@ -26,6 +26,9 @@ Steps
    second solve, 523 -> 323 s at 32 x 32 on the resolution chart, but the start's chi^2 is far
    above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
+   The result is the last level's: a coarser level cut by its iteration limit (or with a
+   response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
+   last level refits every unknown and is judged by its own solve and the checks below).
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
@@ -252,7 +255,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     dtype = np.float32 if st.step_precision == "float32" else np.float64
     chunk = int(st.chunk_mb * 2 ** 20)
     workers = st.n_threads()
-    levels, reasons = [], []
+    levels, reasons, notes = [], [], []
     lam = 0.0 if st.prior in ("auto", "none") else float(st.prior)
     gain_scale = 1.0
     state = prev = None
@@ -338,19 +341,25 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
+        # the result is the last level's state, judged by its own solve and checks; a coarser
+        # level only starts the next one (as the volumetric initialiser does), so its iteration
+        # limit or a response bound is a note, not a reason (the last level refits every unknown)
+        said = reasons if last else notes
         if not res["success"]:
             drop = last_decrease(res)
             tail = (f" (its last step still lowered the whitened chi2 plus prior by {drop:.4g}: not converged; "
                     "raise max_iter)") if drop is not None and res["status"].startswith("Maximum") else ""
-            reasons.append(f"level {li} ({n}x{n}): solver status {res['status']}{tail}")
+            if not last:
+                tail += "; a coarse level only starts the next one"
+            said.append(f"level {li} ({n}x{n}): solver status {res['status']}{tail}")
         if res["at_bound"]:
-            reasons.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "
-                           f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "
-                           f"[{tail_b[0]:.3g}, {tail_b[1]:.3g}] m)")
+            said.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "
+                        f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "
+                        f"[{tail_b[0]:.3g}, {tail_b[1]:.3g}] m)")
         prev = grid
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
-                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0)
+                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes)
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -374,7 +383,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
 
 
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
-            t_start, full=None, lin=None, start=None) -> SurfaceResult:
+            t_start, full=None, lin=None, start=None, notes=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
     steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is."""
     grid = model.grid
@@ -457,6 +466,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,
+                # what the coarse levels could not do (not reasons: the last level decides)
+                "notes": list(notes or []),
                 # the last discrepancy choice (prior="auto"): its reference chi^2, target, whether
                 # the slack bound it (then the weight reflects the solve's progress, not the noise)
                 "prior_choice": next((lv["lambda_choice"][-1] for lv in reversed(levels)
