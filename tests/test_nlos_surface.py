@@ -573,6 +573,31 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
     assert len(note) == 1 and "not converged" in note[0] and "only starts the next one" in note[0]
 
 
+def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane):
+    """12 x 12 nodes over the tilted plane's 8 x 8 traces (prior auto): each node's own albedo is
+    significant at 3 std on only a minority of the support (neighbouring albedos trade against
+    each other; measured 21 of 64), while the 3 x 3 neighbourhood means (std from the albedos'
+    full covariance) put at least 90 % of the support's nodes in the mask and no node beyond one
+    node spacing of the surface's edge."""
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    res = fit_surface(relay, init, SurfaceSettings(n_nodes=12, levels=2, known_gain=True, sigma0=0.01, max_iter=30,
+                                                   prior="auto", extent=(-0.15, 0.15, -0.15, 0.15)), gate=0.2)
+    g = res.grid
+    yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
+    support = (np.abs(xx) <= 0.12) & (np.abs(yy) <= 0.12)
+    far = (np.abs(xx) > 0.125 + g.hx) | (np.abs(yy) > 0.125 + g.hy)
+    own = (res.albedo > 3 * res.albedo_std) & (res.albedo > 0.1 * res.albedo.max())
+    assert (own & support).sum() < 0.5 * support.sum()
+    assert (res.mask & support).sum() >= 0.9 * support.sum()
+    assert not (res.mask & far).any()
+
+
 def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilted_plane):
     """``tol_chi2`` = 1 on the tilted plane (one level, no prior): LM stops with "Converged (step
     below its std)" when a step's chi^2 decrease and its predicted one are both below

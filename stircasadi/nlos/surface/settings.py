@@ -81,7 +81,8 @@ class SurfaceSettings:
     #: precision of the Gauss-Newton products of the solver's steps ("float32" or "float64");
     #: the Fisher covariance is always accumulated from float64 products
     step_precision: str = "float32"
-    #: minimum significance (albedo / its std) of a node in the surface mask
+    #: minimum significance (albedo / its std) of a node in the surface mask: its own albedo's or
+    #: its 3 x 3 neighbourhood's mean albedo's (std from the full covariance)
     mask_z: float = 3.0
     #: the explained-returns check (``explained.py``): the whitened residual over the relay's
     #: whole time range (after the gate) searched by a matched filter over ``explained_n``^3
