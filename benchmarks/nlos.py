@@ -115,7 +115,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
     t0 = time.perf_counter()
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
                            wall_step=4, n_nodes=n, levels=levels, max_iter=max_iter, threads=threads,
-                           prior=prior if prior in ("auto", "none") else float(prior))
+                           prior=prior if prior in ("auto", "gcv", "none") else float(prior))
     dt = time.perf_counter() - t0
     s = est.surface
     z0, tilt = plane_of(s)
@@ -140,7 +140,7 @@ def main(argv=None):
     ap.add_argument("--no-bp", action="store_true", help="skip the backprojections")
     ap.add_argument("--surface", default="8,16,32", help="surface grid sizes (nodes per side)")
     ap.add_argument("--prior", default="none", help="the surface fit's smoothness prior: none "
-                    "(default), auto (discrepancy principle), or a weight")
+                    "(default), auto (discrepancy principle), gcv (generalised cross-validation), or a weight")
     ap.add_argument("--threads", type=int, default=None, help="the surface fit's threads (default: "
                     "SurfaceSettings.threads: the process's CPUs, at most 4; 1 under OMP_NUM_THREADS=1)")
     ap.add_argument("--max-iter", type=int, default=12, help="LM iterations per surface level")

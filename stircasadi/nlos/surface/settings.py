@@ -48,7 +48,9 @@ class SurfaceSettings:
     known_gain: bool = False
     #: smoothness prior on the depth map's Laplacian: "none" (default: the std maps are the
     #: data's own Fisher bounds), "auto" (weight by the discrepancy principle; the std are then
-    #: posterior std that do not cover the prior's bias), or a fixed non-negative weight
+    #: posterior std that do not cover the prior's bias), "gcv" (weight by generalised
+    #: cross-validation, which needs no noise level: robust to a model mismatch that scales
+    #: chi^2), or a fixed non-negative weight
     prior: str | float = "none"
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
@@ -115,8 +117,8 @@ class SurfaceSettings:
         if self.step_precision not in ("float32", "float64"):
             raise ReconstructionError(f"step_precision must be 'float32' or 'float64'; got {self.step_precision!r}.")
         if isinstance(self.prior, str):
-            if self.prior not in ("auto", "none"):
-                raise ReconstructionError(f"prior must be 'auto', 'none' or a weight >= 0; got {self.prior!r}.")
+            if self.prior not in ("auto", "gcv", "none"):
+                raise ReconstructionError(f"prior must be 'auto', 'gcv', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
         for name in ("sigma0", "tail0", "z_slack", "noise_sigma"):
