@@ -64,7 +64,8 @@ def _priors(areas, flatland) -> dict:
 
 def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian", areas=None,
                      flatland: bool | None = None, settings=None, method: str | None = None,
-                     out_dir=None, time_limit: float | None = None) -> EstimateResult:
+                     out_dir=None, time_limit: float | None = None,
+                     nlos_options: dict | None = None) -> EstimateResult:
     """Estimate geometry, reflectance and hidden patches from ``capture`` (see module docstring).
 
     hidden : number of hidden patches to place (None: as many as the data ask for).
@@ -81,6 +82,9 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     time_limit : wall-clock seconds for the whole estimate (overrides ``settings.time_limit``):
         where it runs out the stages left are skipped and the result is the last converged fit,
         flagged UNRELIABLE by the ``time-limit`` check (``stircasadi.joint.budget``).
+    nlos_options : relay-wall scans with ``method`` "lct", "fk", "bp" or "surface" only: options of
+        ``stircasadi.nlos.estimate_capture`` (``VolumeSettings`` / ``SurfaceSettings`` fields,
+        ``init``, ``wall_step``, ``gain``); an unknown one is refused with the known ones.
     """
     from .joint.settings import EstimateSettings
 
@@ -97,8 +101,15 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     settings = settings.validate()
     t0 = time.perf_counter()
     view = CaptureView.of(capture, _priors(areas, flatland))
+    if nlos_options and method not in ("lct", "fk", "bp", "surface"):
+        raise ModelError(f"nlos_options are for method 'lct', 'fk', 'bp' or 'surface' on a relay-wall scan; "
+                         f"got method={method!r}.")
     if capture.stir is None or not capture.legs_included:
-        return _relay(capture, view, t0, method, out_dir)
+        return _relay(capture, view, t0, method, out_dir, nlos_options)
+    if nlos_options:
+        raise ModelError("nlos_options are for relay-wall scans (paired or rectified traces); a full STIR "
+                         "with its legs takes method='surface' with the route's own settings "
+                         "(library: stircasadi.nlos.stir_surface.hidden_surface_from_stir).")
     if method not in (None, "joint", "surface"):
         raise ModelError(f"method={method!r} is for relay-wall scans (paired or rectified traces); "
                          "a full STIR with its legs is estimated by the joint fit (method=None or "
@@ -228,14 +239,14 @@ def _covariance(est, patches, ids, plan_names):
     return {"parameters": names, "matrix": C}
 
 
-def _relay(capture, view, t0, method=None, out_dir=None) -> EstimateResult:
+def _relay(capture, view, t0, method=None, out_dir=None, nlos_options=None) -> EstimateResult:
     from .geometry.relay import estimate_relay
     from .report import jsonable
 
     if method not in (None, "relay"):
         from .nlos import estimate_capture as nlos_estimate
 
-        est = nlos_estimate(capture, method=method, out_dir=out_dir)
+        est = nlos_estimate(capture, method=method, out_dir=out_dir, **(nlos_options or {}))
         d = est.to_json_dict()
         d.setdefault("priors", view.priors)
         return EstimateResult(jsonable(d), geometry=est, view=view)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 __all__ = ["Formatter", "SEED_MAX", "HIDDEN_MAX", "BOUNCES_MAX", "seed", "hidden", "bounces",
            "problem", "input_file", "capture_file", "estimate_file", "areas", "kind_of",
-           "time_limit", "TIME_LIMIT_DEFAULT"]
+           "time_limit", "TIME_LIMIT_DEFAULT", "nlos_option"]
 
 #: random seeds go to ``numpy.random.default_rng``; the CLI keeps them to 32 bits so that a
 #: seed written in a report can be typed back everywhere (0 ... 2**32 - 1)
@@ -153,3 +153,29 @@ def areas(text: str) -> dict:
     if bad:
         raise argparse.ArgumentTypeError(f"--areas needs patch ids >= 0 and areas > 0 m^2; got {bad}.")
     return out
+
+
+def nlos_option(text: str) -> tuple:
+    """One ``--nlos KEY=VALUE`` option of the relay-wall reconstructions (``stircasadi.nlos``):
+    the value read as JSON where it parses (numbers, true / false, null, "text", [lists]), a
+    comma-separated list of numbers as a tuple (``extent=-0.2,0.2,-0.2,0.2``), else as text
+    (``prior=auto``). Which keys exist is checked by the reconstruction, which lists them."""
+    key, sep, raw = str(text).partition("=")
+    key = key.strip()
+    if not sep or not key.isidentifier():
+        raise argparse.ArgumentTypeError(
+            f"--nlos takes KEY=VALUE, a field of stircasadi.nlos VolumeSettings / SurfaceSettings or "
+            f"init / wall_step / gain (e.g. --nlos n_nodes=16 --nlos prior=auto --nlos wall_step=4); "
+            f"got {text!r}.")
+    raw = raw.strip()
+    try:
+        val = json.loads(raw)
+    except ValueError:
+        parts = [q.strip() for q in raw.split(",")]
+        try:
+            val = tuple(float(q) for q in parts) if len(parts) > 1 else raw
+        except ValueError:
+            val = raw
+    if isinstance(val, list):
+        val = tuple(val)
+    return key, val

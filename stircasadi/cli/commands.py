@@ -107,6 +107,10 @@ def cmd_estimate(args) -> int:
     elif args.maps is not None:
         raise StircasadiError(f"--maps is for --method {'|'.join(NLOS_METHODS)} (relay-wall volumes and "
                               f"surfaces); got --method {args.method or 'automatic'}.")
+    nlos = dict(args.nlos)
+    if nlos and args.method not in NLOS_METHODS:
+        raise StircasadiError(f"--nlos is for --method {'|'.join(NLOS_METHODS)} (relay-wall volumes and "
+                              f"surfaces); got --method {args.method or 'automatic'}.")
     t0 = time.perf_counter()
     cap = Capture.read(args.capture)
     truth, cap.truth = cap.truth, None  # the estimator never sees a truth group
@@ -115,7 +119,7 @@ def cmd_estimate(args) -> int:
                 else f"{len(cap.traces)} paired traces"))
     res = estimate_capture(cap, hidden=args.hidden, brdf=args.brdf, areas=args.areas,
                            flatland=True if args.flatland else None, method=args.method, out_dir=maps,
-                           time_limit=args.time_limit)
+                           time_limit=args.time_limit, nlos_options=nlos or None)
     d = res.to_json_dict()
     atomic_write_text(out, dumps(d))
     if maps is not None:
@@ -181,6 +185,11 @@ def add_parsers(sub) -> list:
     e.add_argument("--maps", type=Path, default=None,
                    help="folder for the volumes, maps, mesh and pictures of --method lct|fk|bp|surface "
                         "(default: OUT_nlos beside the estimate)")
+    e.add_argument("--nlos", type=A.nlos_option, action="append", default=[], metavar="KEY=VALUE",
+                   help="an option of --method lct|fk|bp|surface on a relay-wall scan, repeatable: a "
+                        "field of stircasadi.nlos VolumeSettings or SurfaceSettings, or init / "
+                        "wall_step / gain (e.g. --nlos wall_step=4 --nlos bin_factor=4 --nlos "
+                        "n_nodes=16 --nlos prior=auto); an unknown key is refused with the known ones")
     e.add_argument("--time-limit", type=A.time_limit, default=A.TIME_LIMIT_DEFAULT, metavar="SECONDS",
                    help="wall-clock limit of the estimate: where it runs out, the stages left are skipped "
                         "and the result is the last converged fit, flagged UNRELIABLE (check time-limit); "

@@ -1,0 +1,60 @@
+"""``stircasadi estimate --method lct|fk|bp|surface --nlos KEY=VALUE`` on a relay-wall capture
+file: the options reach the reconstruction (the surface fit's grid, levels and prior are the ones
+asked for), and a malformed, unknown or misplaced option stops the command with exit status 2,
+one clear line naming what is allowed, and nothing written."""
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import pytest
+
+from nlos_twins import confocal_capture, render, surface_patches
+from stircasadi.cli import main
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    """The tilted-plane confocal twin (8 x 8 wall points, 1 % noise) written as a capture file."""
+    hid, _ = surface_patches(lambda x, y: 0.35 + math.tan(math.radians(15.0)) * x, 0.12, 25, rho=0.7)
+    stir, grid, xyz = render(8, 0.3, hid, n_bins=100, bin_width=0.01, fwhm=0.03)
+    path = tmp_path_factory.mktemp("scan") / "tilted.h5"
+    confocal_capture(stir, grid, xyz, noise_rel=0.01, fwhm=0.03).write(path)
+    return path
+
+
+def run_cli(argv, capsys):
+    code = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err + cap.out
+    return code, cap.out, cap.err
+
+
+def test_nlos_options_reach_the_surface_fit(scan, tmp_path, capsys):
+    out = tmp_path / "e.json"
+    code, _, err = run_cli(["-q", "estimate", scan, "--out", out, "--method", "surface",
+                            "--nlos", "gate_m=0.2", "--nlos", "n_nodes=6", "--nlos", "levels=2",
+                            "--nlos", "max_iter=4", "--nlos", "sigma0=0.01", "--nlos", "prior=gcv",
+                            "--nlos", "extent=-0.15,0.15,-0.15,0.15"], capsys)
+    assert code in (0, 3), err
+    d = json.loads(out.read_text())
+    s = d["surface"]
+    assert len(s["grid"]["x"]) == 6 and len(s["levels"]) == 2
+    assert s["prior_method"] == "generalised cross-validation"
+    assert s["grid"]["x"][0] == pytest.approx(-0.15) and s["grid"]["x"][-1] == pytest.approx(0.15)
+    assert all(so["iterations"] <= 4 for lv in s["levels"] for so in lv["solves"])
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--method", "surface", "--nlos", "n_nodes"], ["--nlos takes KEY=VALUE", "'n_nodes'"]),
+    (["--method", "surface", "--nlos", "bogus=1"], ["Unknown option(s) ['bogus']", "n_nodes"]),
+    (["--method", "surface", "--nlos", "prior=often"], ["prior must be 'auto', 'gcv', 'none'"]),
+    (["--nlos", "n_nodes=6"], ["--nlos is for --method lct|fk|bp|surface"]),
+])
+def test_bad_nlos_options_are_refused(scan, tmp_path, capsys, extra, words):
+    code, _, err = run_cli(["-q", "estimate", scan, "--out", tmp_path / "e.json", *extra], capsys)
+    assert code == 2, err
+    for w in words:
+        assert w in err, (w, err)
+    assert sorted(os.listdir(tmp_path)) == []
