@@ -20,6 +20,8 @@ Steps
    level's NLP. With ``prior="auto"`` the smoothness weight is chosen after each level's solve
    as the largest for which the whitened chi^2 of the linearised regularised solution stays
    within max(chi2_min, dof) (1 + 2 sqrt(2 / dof)) (discrepancy principle; ``_choose_lambda``);
+   with ``prior="gcv"`` the same candidates are scored by generalised cross-validation instead
+   (no noise level needed: ``_choose_lambda(rule="gcv")``);
    a coarse level's weight starts the next level (the penalty approximates the integral of
    (del^2 z)^2, independent of the spacing), and the last level is re-solved when its weight
    moved by more than 3x. (Choosing the last level's weight at its own start instead saved that
@@ -451,7 +453,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
     vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
     n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
-    mask, nb_z = _mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
+    mask = _mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)[0]
     # detection: the surface must lower chi^2 below what the same window holds without it (zero
     # albedo, the fitted background and response) by more than chance would with 2 N free node
     # unknowns (likelihood ratio at p = DETECT_P, chi^2 scaled by the inflation); else the data
