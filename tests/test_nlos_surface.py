@@ -109,6 +109,26 @@ def test_footprint_variance_is_the_delay_variance_over_the_block():
     assert float(footprint_variance(np.zeros(3), np.zeros(3), X0, u, v, f2, f2)) == pytest.approx(0.0, abs=1e-20)
 
 
+def test_a_bad_footprint_is_refused_with_what_is_allowed():
+    """Relay.footprint: a wrong shape, a negative or a non-finite variance is refused with the
+    shape and units allowed; None stands for zeros and a subset keeps its traces' rows."""
+    from stircasadi.errors import ReconstructionError
+    from stircasadi.nlos.relay import Relay
+    L = np.c_[np.linspace(-0.1, 0.1, 4), np.zeros(4), np.zeros(4)]
+    n = np.tile([0, 0, 1.0], (4, 1))
+
+    def make(fp):
+        return Relay(np.zeros((4, 10)), TimeGrid(0.6, 0.004, 10), L, L.copy(), n, n, 0.0, 1.0, confocal=True,
+                     footprint=fp)
+
+    for bad in (np.zeros((4, 3)), np.full((4, 2), -1e-6), np.full((4, 2), np.nan)):
+        with pytest.raises(ReconstructionError, match=r"footprint' must be \(4, 2\) finite variances >= 0"):
+            make(bad)
+    assert np.array_equal(make(None).footprint, np.zeros((4, 2)))
+    fp = np.arange(8.0).reshape(4, 2) * 1e-6
+    assert np.array_equal(make(fp).subset([3, 1]).footprint, fp[[3, 1]])
+
+
 def test_a_summed_block_of_traces_is_modelled_by_its_footprint():
     """A trace that sums a 4 x 4 block of confocal scan points (``subsample_confocal``): the
     model at the block's centre with the block's footprint against the exact sum of the 16
