@@ -410,6 +410,19 @@ def test_compiled_pair_geometry_gives_the_same_numbers(monkeypatch):
     assert np.allclose(out[0], out[1], rtol=1e-12, atol=1e-15 * np.abs(out[1]).max())
 
 
+def _linear_problem():
+    """A seeded ill-conditioned linear least-squares problem y = J z + noise (unit std) with a
+    smooth z and the second-difference prior R: (rng, N, n, J, z_true, y, R, H = J^T J, dof)."""
+    rng = np.random.default_rng(7)
+    N, n = 30, 240
+    t = np.linspace(0, 1, N)
+    J = rng.standard_normal((n, N)) @ np.diag(np.linspace(1.0, 0.02, N))   # ill-conditioned
+    z_true = np.sin(12 * t) + 0.5 * t
+    y = J @ z_true + rng.standard_normal(n)
+    D2 = np.diff(np.eye(N), 2, axis=0)
+    return rng, N, n, J, z_true, y, D2.T @ D2, J.T @ J, n - N
+
+
 def test_discrepancy_weight_on_a_linear_problem_is_the_exact_one_from_any_start():
     """``fit._choose_lambda`` on a linear least-squares problem y = J z + noise with a smooth z
     and the second-difference prior: the weight it returns is the largest candidate whose exact
@@ -419,16 +432,7 @@ def test_discrepancy_weight_on_a_linear_problem_is_the_exact_one_from_any_start(
     of chi^2 + lam z^T R z, not a step damped by lam)."""
     from stircasadi.nlos.surface.fit import _choose_lambda
 
-    rng = np.random.default_rng(7)
-    N, n = 30, 240
-    t = np.linspace(0, 1, N)
-    J = rng.standard_normal((n, N)) @ np.diag(np.linspace(1.0, 0.02, N))   # ill-conditioned
-    z_true = np.sin(12 * t) + 0.5 * t
-    y = J @ z_true + rng.standard_normal(n)
-    D2 = np.diff(np.eye(N), 2, axis=0)
-    R = D2.T @ D2
-    H = J.T @ J
-    dof = n - N
+    rng, N, n, J, z_true, y, R, H, dof = _linear_problem()
 
     def chi2(z):
         return float(np.sum((J @ z - y) ** 2))
@@ -476,16 +480,7 @@ def test_gcv_weight_on_a_linear_problem_minimises_the_exact_gcv_and_ignores_the_
     same weight relative to the data's scale while the discrepancy weight moves."""
     from stircasadi.nlos.surface.fit import _choose_lambda
 
-    rng = np.random.default_rng(7)
-    N, n = 30, 240
-    t = np.linspace(0, 1, N)
-    J = rng.standard_normal((n, N)) @ np.diag(np.linspace(1.0, 0.02, N))
-    z_true = np.sin(12 * t) + 0.5 * t
-    y = J @ z_true + rng.standard_normal(n)
-    D2 = np.diff(np.eye(N), 2, axis=0)
-    R = D2.T @ D2
-    H = J.T @ J
-    dof = n - N
+    _, N, n, J, z_true, y, R, H, dof = _linear_problem()
     z0 = np.zeros(N)
 
     def choose(scale, rule):
