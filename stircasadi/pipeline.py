@@ -101,9 +101,11 @@ def estimate_capture(capture, hidden: int | None = None, brdf: str = "lambertian
     settings = settings.validate()
     t0 = time.perf_counter()
     view = CaptureView.of(capture, _priors(areas, flatland))
-    if nlos_options and method not in ("lct", "fk", "bp", "surface"):
-        raise ModelError(f"nlos_options are for method 'lct', 'fk', 'bp' or 'surface' on a relay-wall scan; "
-                         f"got method={method!r}.")
+    if nlos_options:
+        from .nlos.estimate import METHODS as NLOS_METHODS
+        if method not in NLOS_METHODS:
+            raise ModelError(f"nlos_options are for method {' / '.join(map(repr, NLOS_METHODS))} on a "
+                             f"relay-wall scan; got method={method!r}.")
     if capture.stir is None or not capture.legs_included:
         return _relay(capture, view, t0, method, out_dir, nlos_options)
     if nlos_options:

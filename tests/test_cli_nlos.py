@@ -58,3 +58,20 @@ def test_bad_nlos_options_are_refused(scan, tmp_path, capsys, extra, words):
     for w in words:
         assert w in err, (w, err)
     assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_library_refuses_nlos_options_outside_the_relay_wall_methods():
+    """``pipeline.estimate_capture(nlos_options=...)`` on a full STIR (three_patch): refused for
+    the joint fit (a relay-wall method is needed) and for method='surface' on a full STIR (that
+    route has its own settings), before any fit runs."""
+    from stircasadi.errors import ModelError
+    from stircasadi.pipeline import estimate_capture
+    from stircasadi.problems import three_patch as P
+    from stircasadi.transport import simulate
+
+    sen = P.build_sensor()
+    cap = sen.capture(simulate(P.build_scene(), P.build_grid(), sensor=sen), seed=0)
+    with pytest.raises(ModelError, match="nlos_options are for method 'lct' / 'fk' / 'bp' / 'surface'"):
+        estimate_capture(cap, method="joint", nlos_options={"n_nodes": 6})
+    with pytest.raises(ModelError, match="nlos_options are for relay-wall scans"):
+        estimate_capture(cap, method="surface", nlos_options={"n_nodes": 6})
