@@ -16,7 +16,8 @@ decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps; `
 sets the smoothness prior's weight by the discrepancy principle (without a prior a 32 x 32 grid
 over 16 x 16 traces is ill-posed). The fit runs on ``SurfaceSettings.threads`` threads (default:
 the process's CPUs, at most 4, or 1 under OMP_NUM_THREADS=1; ``--threads``), ``--max-iter`` LM
-iterations per level (default 12); each row records both.
+iterations per level (default 12); each row records both. ``--albedo-prior A`` adds the albedo's
+gradient penalty at relative weight A under the chosen prior (``SurfaceSettings.albedo_prior``).
 """
 from __future__ import annotations
 
@@ -105,7 +106,8 @@ def plane_of(s):
     return s.plane()
 
 
-def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12) -> dict:
+def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12,
+                albedo_prior: float = 0.0) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
     the process's maximum resident memory, the precision-weighted plane through the mask."""
     import resource
@@ -115,7 +117,8 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
     t0 = time.perf_counter()
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
                            wall_step=4, n_nodes=n, levels=levels, max_iter=max_iter, threads=threads,
-                           prior=prior if prior in ("auto", "gcv", "none") else float(prior))
+                           prior=prior if prior in ("auto", "gcv", "none") else float(prior),
+                           albedo_prior=albedo_prior)
     dt = time.perf_counter() - t0
     s = est.surface
     z0, tilt = plane_of(s)
@@ -123,7 +126,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
             "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, "peak_kind": "max RSS",
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
-            "prior": prior, "prior_weight": s.prior_weight, "success": s.success,
+            "prior": prior, "prior_weight": s.prior_weight, "albedo_prior": albedo_prior, "success": s.success,
             "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
                         "lam": [x["lam"] for x in lv["solves"]],
@@ -144,10 +147,12 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=None, help="the surface fit's threads (default: "
                     "SurfaceSettings.threads: the process's CPUs, at most 4; 1 under OMP_NUM_THREADS=1)")
     ap.add_argument("--max-iter", type=int, default=12, help="LM iterations per surface level")
+    ap.add_argument("--albedo-prior", type=float, default=0.0, help="the surface fit's albedo_prior "
+                    "(the albedo's gradient penalty relative to the depth's; needs --prior)")
     ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.surface_one is not None:
-        print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter)))
+        print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter, a.albedo_prior)))
         return
     rows = []
     folder = data_dir() / "otoole2018_confocal"
@@ -193,8 +198,8 @@ def main(argv=None):
             # many NumPy allocations several-fold) and the process's maximum resident memory
             # (CasADi's buffers included)
             out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior,
-                                  "--max-iter", str(a.max_iter)] + ([] if a.threads is None else
-                                                                   ["--threads", str(a.threads)]),
+                                  "--max-iter", str(a.max_iter), "--albedo-prior", str(a.albedo_prior)]
+                                 + ([] if a.threads is None else ["--threads", str(a.threads)]),
                                  capture_output=True, text=True)
             if out.returncode != 0:
                 print(f"surface {n}x{n} failed:\n{out.stderr[-2000:]}")

@@ -130,5 +130,6 @@ def json_dict(est) -> dict:
             "noise": {"sigma": sig, "source": None if s is None else s.extras.get("noise"),
                       "capture_sigma": est.relay.sigma if isinstance(est.relay.sigma, float) else None},
             "checks": checks, "ambiguities": [], "priors": {} if s is None else
-            {"smoothness": {"weight": s.prior_weight, "method": s.prior_method}},
+            {"smoothness": {"weight": s.prior_weight, "method": s.prior_method,
+                            "albedo_relative_weight": s.extras.get("albedo_prior", 0.0)}},
             "stages": est.stages, "surface": surf}

@@ -82,6 +82,12 @@ def last_decrease(solve: dict) -> float | None:
     return 2.0 * (h[-1]["f"] - h[-1]["f_new"]) if h else None
 
 
+def prior_vector(st: SurfaceState, M: int) -> np.ndarray:
+    """The unknowns a smoothness prior of size ``M`` acts on: the depths (M = N) or the depths
+    and then the albedos (M = 2 N)."""
+    return st.z if M == len(st.z) else np.concatenate([st.z, st.rho])
+
+
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None,
              tol_chi2: float = 0.0) -> dict:
@@ -101,9 +107,13 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     smaller still while the decrease shrinks."""
     N = model.N
     prior = lam > 0
+    M = Rz.shape[0]        # the prior acts on the depths (M = N) or on depths and albedos (2 N)
 
-    def pen(z):
-        return 0.5 * lam * float(z @ (Rz @ z)) if prior else 0.0
+    def pen(s):
+        if not prior:
+            return 0.0
+        v = prior_vector(s, M)
+        return 0.5 * lam * float(v @ (Rz @ v))
 
     th = bounds.project(model.pack(st))
     st = model.unpack(th, st)
@@ -114,11 +124,11 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     for it in range(1, max_iter + 1):
         # (``lin0``: the caller's linearisation at the starting state, reused by the first step)
         lin = lin0 if (it == 1 and lin0 is not None) else model.linearise(st, y, wgt, dtype=dtype)
-        f = 0.5 * lin["chi2"] + pen(st.z)
+        f = 0.5 * lin["chi2"] + pen(st)
         H, g = lin["H"], lin["g"].copy()
         if prior:
-            H[:N, :N] += lam * Rz
-            g[:N] += lam * (Rz @ st.z)
+            H[:M, :M] += lam * Rz
+            g[:M] += lam * (Rz @ prior_vector(st, M))
         dH = _damping(np.diag(H), N)
         # projected Newton: unknowns at a bound whose gradient pushes outward stay there
         free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
@@ -136,7 +146,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
             tn = bounds.project(th + d)
             sn = model.unpack(tn, st)
             chi2n, _ = model.objective(sn, y, wgt)
-            fn = 0.5 * chi2n + pen(sn.z)
+            fn = 0.5 * chi2n + pen(sn)
             if np.isfinite(fn) and fn < f:
                 accepted = True
                 dd = tn - th      # the step taken (clipped and projected)

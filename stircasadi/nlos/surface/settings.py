@@ -1,6 +1,7 @@
 """Typed settings of the hidden-surface fit (analysis by synthesis)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ...errors import ReconstructionError
@@ -52,6 +53,10 @@ class SurfaceSettings:
     #: cross-validation, which needs no noise level: robust to a model mismatch that scales
     #: chi^2), or a fixed non-negative weight
     prior: str | float = "none"
+    #: relative weight of the albedo's smoothness penalty (the integral of |grad rho|^2 over the
+    #: extent) beside the depth's (the integral of (del^2 z)^2), both under the prior's weight;
+    #: 0: the albedos are free (on grids finer than the traces they are then not determined)
+    albedo_prior: float = 0.0
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
     #: "lm": bounded Levenberg-Marquardt with the exact Gauss-Newton matrix (default; 5-20
@@ -121,6 +126,11 @@ class SurfaceSettings:
                 raise ReconstructionError(f"prior must be 'auto', 'gcv', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
+        if not (float(self.albedo_prior) >= 0 and math.isfinite(float(self.albedo_prior))):
+            raise ReconstructionError(f"albedo_prior must be a finite weight >= 0; got {self.albedo_prior!r}.")
+        if float(self.albedo_prior) > 0 and self.prior == "none":
+            raise ReconstructionError("albedo_prior weighs the albedo's penalty under the smoothness prior's "
+                                      "weight: set prior='auto', 'gcv' or a weight as well (prior='none' has none).")
         for name in ("sigma0", "tail0", "z_slack", "noise_sigma"):
             v = getattr(self, name)
             if v is not None and not (v > 0):

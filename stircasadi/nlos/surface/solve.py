@@ -12,6 +12,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from .lm import prior_vector
+
 __all__ = ["solve_level"]
 
 
@@ -92,10 +94,11 @@ def solve_level(model, y, wgt, st, lam, Rz, bounds, max_iter, tol) -> dict:
         lin = model.linearise(s, y, wgt, need_h=False)
         f, g = 0.5 * lin["chi2"], lin["g"]
         if lam > 0:
-            q = Rz @ s.z
-            f += 0.5 * lam * float(s.z @ q)
+            v = prior_vector(s, Rz.shape[0])
+            q = Rz @ v
+            f += 0.5 * lam * float(v @ q)
             g = g.copy()
-            g[:N] += lam * q
+            g[:len(v)] += lam * q
         return f, g * scale
 
     cb = _Objective(fn, model.npar)
