@@ -109,6 +109,51 @@ def test_footprint_variance_is_the_delay_variance_over_the_block():
     assert float(footprint_variance(np.zeros(3), np.zeros(3), X0, u, v, f2, f2)) == pytest.approx(0.0, abs=1e-20)
 
 
+@pytest.mark.parametrize("solver", ["lm", "ipopt"])
+def test_both_solvers_minimise_chi2_plus_a_prior_on_depths_and_albedos(solver):
+    """LM (``solve_lm``) and IPOPT (``solve_level``) with a prior over depths and albedos (the
+    ``albedo_prior`` block): the objective each reports at its final state is half the whitened
+    chi^2 plus half lam v^T R v there (v the depths then the albedos), below its start's; the
+    albedo block pulls a rough albedo start towards a smoother one."""
+    from scipy.linalg import block_diag
+
+    from stircasadi.nlos.relay import Relay
+    from stircasadi.nlos.surface.lm import Bounds, prior_vector, solve_lm
+    from stircasadi.nlos.surface.model import SurfaceState
+    from stircasadi.nlos.surface.response import Response
+    from stircasadi.nlos.surface.solve import solve_level
+    rng = np.random.default_rng(5)
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.1, 0.1, 4), frame)
+    L = np.c_[rng.uniform(-0.2, 0.2, (12, 2)), np.zeros(12)]
+    n = np.tile([0, 0, 1.0], (12, 1))
+    rl = Relay(np.zeros((12, 150)), TimeGrid(0.6, 0.004, 150), L, L.copy(), n, n, 0.0, 1.0, confocal=True)
+    model = SurfaceModel(grid, rl, Response("gaussian", 0.006), fit_shape=False)
+    truth = SurfaceState(np.full(grid.n, 0.4), np.full(grid.n, 0.6), 0.006, 0.0, (), 0.0)
+    y = model.predict(truth) + 1e-4 * rng.standard_normal((12, 150))
+    wgt = np.full(y.shape, 1e8)
+    lap = grid.laplacian()
+    Gx, Gy = grid.gradient_ops()
+    R = block_diag((lap.T @ lap).toarray() / grid.hx ** 2, (Gx.T @ Gx + Gy.T @ Gy).toarray() * grid.hx ** 2)
+    start = SurfaceState(np.full(grid.n, 0.402), rng.uniform(0.2, 1.0, grid.n), 0.006, 0.0, (), 0.0)
+    lam = 1e3
+    bounds = Bounds(model, 1.0, (0.001, 0.03), (0.001, 0.1))
+
+    def objective(st):
+        v = prior_vector(st, 2 * grid.n)
+        return 0.5 * model.objective(st, y, wgt)[0] + 0.5 * lam * float(v @ (R @ v))
+
+    if solver == "lm":
+        res = solve_lm(model, y, wgt, start, lam, R, bounds, 0.01, max_iter=10)
+    else:
+        res = solve_level(model, y, wgt, start, lam, R, bounds, max_iter=40, tol=1e-8)
+    end = res["state"]
+    assert res["f"] == pytest.approx(objective(end), rel=1e-9)
+    assert res["f"] < objective(start)
+    rough = float(np.sum((Gx @ start.rho) ** 2 + (Gy @ start.rho) ** 2))
+    assert float(np.sum((Gx @ end.rho) ** 2 + (Gy @ end.rho) ** 2)) < 0.5 * rough
+
+
 def test_a_bad_footprint_is_refused_with_what_is_allowed():
     """Relay.footprint: a wrong shape, a negative or a non-finite variance is refused with the
     shape and units allowed; None stands for zeros and a subset keeps its traces' rows."""
