@@ -90,16 +90,15 @@ def relay_amplitude(L, D, nL, nD, X, nX, area, albedo, gain, phi: float = 1.0,
 
 
 def cell_variance(L, D, X, ta, tb, ha: float, hb: float):
-    """Variance of the path length over a grid cell (see the module docstring)."""
-    uL = (X - L) / norm3(X - L)
-    uD = (X - D) / norm3(X - D)
-    g_a = dot3(uL + uD, ta)
-    g_b = dot3(uL + uD, tb)
-    return (ha * ha * g_a * g_a + hb * hb * g_b * g_b) / 12.0
+    """Variance of the path length over a grid cell (see the module docstring): the delay's
+    first-order spread over a box of sides ha x hb along ta, tb (variances ha^2 / 12, hb^2 / 12)."""
+    return footprint_variance(L, D, X, ta, tb, ha * ha / 12.0, hb * hb / 12.0)
 
 
 def footprint_variance(L, D, X, u, v, fu2, fv2):
-    """Variance of the path length over a trace's footprint (see the module docstring)."""
+    """Variance of the path length when X's or the trace's spots' position spreads with variances
+    ``fu2``, ``fv2`` along ``u``, ``v`` (a trace's footprint, or a node's cell: see the module
+    docstring); first order in the spread, the delay's gradient u_XL + u_XD."""
     g = (X - L) / norm3(X - L) + (X - D) / norm3(X - D)
     g_u = dot3(g, u)
     g_v = dot3(g, v)
