@@ -464,7 +464,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
     vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
     n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
-    mask = _mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)[0]
+    mask = _mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
     # detection: the surface must lower chi^2 below what the same window holds without it (zero
     # albedo, the fitted background and response) by more than chance would with 2 N free node
     # unknowns (likelihood ratio at p = DETECT_P, chi^2 scaled by the inflation); else the data
@@ -536,19 +536,15 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
 
 def _neighbourhood_mean(grid: DepthGrid):
     """Sparse (N, N) operator: the mean over each node's 3 x 3 neighbourhood (the nodes of the
-    grid among them)."""
+    grid among them; nodes are row-major over (y, x), so the neighbourhood is the Kronecker
+    product of the two axes' tridiagonal ones)."""
     import scipy.sparse as sp
     ny, nx = grid.shape
-    idx = np.arange(ny * nx).reshape(ny, nx)
-    rows, cols = [], []
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            r = idx[max(0, -dy):ny - max(0, dy), max(0, -dx):nx - max(0, dx)]
-            c = idx[max(0, dy):ny - max(0, -dy) or None, max(0, dx):nx - max(0, -dx) or None]
-            rows.append(r.ravel())
-            cols.append(c.ravel())
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    B = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(ny * nx, ny * nx))
+
+    def tri(n):
+        return sp.diags([np.ones(n - 1), np.ones(n), np.ones(n - 1)], [-1, 0, 1])
+
+    B = sp.kron(tri(ny), tri(nx), format="csr")
     return sp.diags(1.0 / np.asarray(B.sum(axis=1)).ravel()) @ B
 
 
@@ -558,12 +554,12 @@ def _mask(grid: DepthGrid, rho, rho_std, C_rho, z: float):
     covariance ``C_rho``). On a grid finer than the data resolve, neighbouring albedos are
     anticorrelated and each node's own std is large while their mean is well determined: the
     tilted-plane twin with 12 x 12 nodes over 8 x 8 traces had 21 of its 64 support nodes
-    significant on their own. Returns (mask, the neighbourhood means' significance)."""
+    significant on their own."""
     Bn = _neighbourhood_mean(grid)
     var = np.asarray(Bn.multiply(np.asarray(Bn @ C_rho)).sum(axis=1)).ravel()     # diag(Bn C Bn^T)
     nb_z = (Bn @ rho) / np.sqrt(np.maximum(var, 1e-300))
     bright = rho > 0.1 * max(float(rho.max()), 1e-300)
-    return bright & ((rho > z * rho_std) | (nb_z > z)), nb_z
+    return bright & ((rho > z * rho_std) | (nb_z > z))
 
 
 def _normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:
