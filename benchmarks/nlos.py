@@ -100,12 +100,6 @@ def ytal_bp(cap, cg, n, nz):
     return Volume(np.transpose(out, (2, 1, 0)).astype(np.float32), lin, lin, zs, cg.frame, "ytal-bp")
 
 
-def plane_of(s):
-    """The plane through the surface mask weighted by the nodes' precision (1 / depth std^2,
-    ``SurfaceResult.plane``): depth on the scan's axis, tilt (deg)."""
-    return s.plane()
-
-
 def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12,
                 albedo_prior: float = 0.0) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
@@ -121,7 +115,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
                            albedo_prior=albedo_prior)
     dt = time.perf_counter() - t0
     s = est.surface
-    z0, tilt = plane_of(s)
+    z0, tilt = s.plane()          # weighted by the nodes' precision, 1 / depth std^2
     return {"chart": "resolution", "method": f"surface {n}x{n}", "time_s": dt,
             "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, "peak_kind": "max RSS",
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
