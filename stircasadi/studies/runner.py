@@ -81,10 +81,9 @@ class RunSettings:
 
 def default_workers() -> int:
     """One worker per CPU core this process may use, at most one per 1.5 GB of memory."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        n = os.cpu_count() or 1
+    from .._cpus import usable_cpus
+
+    n = usable_cpus()
     try:
         import psutil
 

@@ -155,13 +155,11 @@ class SurfaceSettings:
         if self.threads is not None:
             return int(self.threads)
         import os
+
+        from ..._cpus import usable_cpus
         if os.environ.get("OMP_NUM_THREADS", "").strip() == "1":
             return 1
-        try:
-            n = len(os.sched_getaffinity(0))
-        except (AttributeError, OSError):
-            n = os.cpu_count() or 1
-        return max(1, min(4, n))
+        return min(4, usable_cpus())
 
     @classmethod
     def from_options(cls, **options) -> "SurfaceSettings":
