@@ -9,6 +9,7 @@ import pytest
 
 from stircasadi.studies import RunSettings, Study, load_results, run_study
 from stircasadi.studies import runner as runner_mod
+from stircasadi.studies.cache import CellCache
 
 # engine mechanics: 4 cells that simulate only (two noise levels x two seeds; fast)
 TINY = {"name": "tiny", "repetitions": 2, "seed": 5,
@@ -70,6 +71,25 @@ def test_dask_two_workers_give_the_serial_table(tmp_path):
     assert "n_bins" in bad["error"]
 
 
+def test_cache_lists_finished_records_not_a_write_in_progress(tmp_path):
+    """A record is written through a hidden temporary ``.<key>.json.*.json`` beside it; while that
+    write is under way (or after a kill removed it) the cache lists only finished records."""
+    from stircasadi.io import atomic_path
+
+    cache = CellCache(tmp_path / "cells")
+    cache.put("aaaa", {"status": "ok"})
+    with atomic_path(cache.path("bbbb")) as tmp:
+        tmp.write_text("{")                              # half a record, mid-write
+        assert tmp.name.startswith(".") and tmp.suffix == ".json"
+        assert len(list(cache.folder.glob("*.json"))) == 2   # what a bare glob would count
+        assert cache.keys() == ["aaaa"] and not cache.done("bbbb")
+    assert cache.keys() == ["aaaa", "bbbb"]
+    with pytest.raises(KeyboardInterrupt), atomic_path(cache.path("cccc")) as tmp:
+        tmp.write_text("{")
+        raise KeyboardInterrupt                          # a kill mid-write: nothing is left behind
+    assert cache.keys() == ["aaaa", "bbbb"] and len(list(cache.folder.iterdir())) == 2
+
+
 def test_interrupted_study_resumes_without_recomputing(tmp_path, counted):
     out = tmp_path / "r"
     n = len(Study.from_dict(TINY).cells())
@@ -81,7 +101,7 @@ def test_interrupted_study_resumes_without_recomputing(tmp_path, counted):
     with pytest.raises(KeyboardInterrupt):
         run_study(TINY, out, settings=RunSettings(workers=0, figures=False), on_result=stop_after_two)
     assert len(counted) == 2
-    assert len(list((out / "cells").glob("*.json"))) == 2
+    assert len(CellCache(out / "cells").keys()) == 2
     partial = load_results(out)                       # partial tables were written
     assert len(partial.cells) == 2 and partial.provenance["run"]["interrupted"]
 
@@ -219,12 +239,15 @@ def test_sigterm_stops_the_cli_and_keeps_finished_cells(tmp_path):
     exe = [sys.executable, "-m", "stircasadi.cli", "study", str(spec), "--out", str(out), "--serial", "-q"]
     proc = subprocess.Popen(exe, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 600  # a loaded machine can take minutes for the first cell
-    while time.monotonic() < deadline and len(list((out / "cells").glob("*.json"))) < 1:
+    def finished():   # records only: a record being written is a hidden temporary .json beside it
+        return len(CellCache(out / "cells").keys()) if (out / "cells").is_dir() else 0
+
+    while time.monotonic() < deadline and finished() < 1:
         time.sleep(0.05)
     assert proc.poll() is None, "the study ended before the first cell was cached"
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
-    n_done = len(list((out / "cells").glob("*.json")))
+    n_done = finished()
     assert proc.returncode == 130 and "interrupted" in err
     assert 1 <= n_done < 40
     assert load_results(out).provenance["run"]["interrupted"]

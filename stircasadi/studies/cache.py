@@ -72,5 +72,11 @@ class CellCache:
     def put(self, key: str, record: dict) -> None:
         atomic_write_text(self.path(key), dumps(record, separators=(",", ":")))
 
+    def keys(self) -> list[str]:
+        """Keys of the finished records in the folder (sorted). A record being written is a
+        hidden temporary file beside it (``.<key>.json.*``) and is not listed."""
+        return sorted(p.stem for p in self.folder.glob("*.json")
+                      if not p.name.startswith(".") and p.is_file())
+
     def drop(self, key: str) -> None:
         self.path(key).unlink(missing_ok=True)
