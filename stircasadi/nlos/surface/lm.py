@@ -88,10 +88,12 @@ def prior_vector(st: SurfaceState, M: int) -> np.ndarray:
     return st.z if M == len(st.z) else np.concatenate([st.z, st.rho])
 
 
-def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, bounds: Bounds,
+def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None,
              tol_chi2: float = 0.0) -> dict:
-    """Run LM from ``st``. Returns dict(state, status, iterations, success, f, at_bound,
+    """Run LM from ``st`` on chi2 / 2 + lam / 2 v^T R_prior v, v the first M = R_prior.shape[0]
+    unknowns (the depths, or the depths then the albedos: ``prior_vector``). Returns dict(state,
+    status, iterations, success, f, at_bound,
     history): ``history`` holds one dict per accepted step, F before and after it (``f``,
     ``f_new``), the decrease the quadratic model predicted for the step taken (``predicted``:
     it matches f - f_new where the model is locally quadratic; a solve stopped by ``max_iter``
@@ -107,13 +109,13 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
     smaller still while the decrease shrinks."""
     N = model.N
     prior = lam > 0
-    M = Rz.shape[0]        # the prior acts on the depths (M = N) or on depths and albedos (2 N)
+    M = R_prior.shape[0]   # the prior acts on the depths (M = N) or on depths and albedos (2 N)
 
     def pen(s):
         if not prior:
             return 0.0
         v = prior_vector(s, M)
-        return 0.5 * lam * float(v @ (Rz @ v))
+        return 0.5 * lam * float(v @ (R_prior @ v))
 
     th = bounds.project(model.pack(st))
     st = model.unpack(th, st)
@@ -127,8 +129,8 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, Rz, boun
         f = 0.5 * lin["chi2"] + pen(st)
         H, g = lin["H"], lin["g"].copy()
         if prior:
-            H[:M, :M] += lam * Rz
-            g[:M] += lam * (Rz @ prior_vector(st, M))
+            H[:M, :M] += lam * R_prior
+            g[:M] += lam * (R_prior @ prior_vector(st, M))
         dH = _damping(np.diag(H), N)
         # projected Newton: unknowns at a bound whose gradient pushes outward stay there
         free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))

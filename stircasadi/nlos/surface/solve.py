@@ -78,7 +78,7 @@ class _Gradient(ca.Callback):
         return [ca.DM(self.obj._eval(arg[0])[1][None, :])]
 
 
-def solve_level(model, y, wgt, st, lam, Rz, bounds, max_iter, tol) -> dict:
+def solve_level(model, y, wgt, st, lam, R_prior, bounds, max_iter, tol) -> dict:
     """Run IPOPT on one level from ``st``. Returns dict(state, status, iterations, success, f)."""
     N = model.N
     th0 = bounds.project(model.pack(st))
@@ -94,8 +94,8 @@ def solve_level(model, y, wgt, st, lam, Rz, bounds, max_iter, tol) -> dict:
         lin = model.linearise(s, y, wgt, need_h=False)
         f, g = 0.5 * lin["chi2"], lin["g"]
         if lam > 0:
-            v = prior_vector(s, Rz.shape[0])
-            q = Rz @ v
+            v = prior_vector(s, R_prior.shape[0])
+            q = R_prior @ v
             f += 0.5 * lam * float(v @ q)
             g = g.copy()
             g[:len(v)] += lam * q
