@@ -32,6 +32,7 @@ def _surface_patches(est):
     _, _, area = s.grid.geometry(s.depth.ravel())
     rho, rstd = s.albedo.ravel(), s.albedo_std.ravel()
     mask = s.mask.ravel()
+    edge = s.edge.ravel() if s.edge is not None else np.zeros(mask.shape, bool)
     rel = "relative albedo: the relay's absolute gain is unknown (scaled by one global factor)"
     out = []
     for k in range(len(P)):
@@ -41,6 +42,9 @@ def _surface_patches(est):
             notes["albedo"] = rel
         if not mask[k]:
             notes["mask"] = "outside the surface mask: the data do not see a surface here"
+        if edge[k]:
+            notes["edge"] = ("at the surface's edge (a cell the edge may cut, or its neighbour): the std "
+                             "hold the noise only, not the error of modelling a partly covered cell as uniform")
         out.append({"id": pid, "name": f"H{pid}", "visible": False,
                     "position": _l(P[k]), "position_std": _l(Ps[k]),
                     "normal": _l(nrm[k]), "normal_std": _l(nstd[k]),
@@ -109,7 +113,8 @@ def json_dict(est) -> dict:
     if s is not None:
         surf.update({"grid": {"x": _l(s.grid.x), "y": _l(s.grid.y)},
                      "maps": {"depth": _l(s.depth), "depth_std": _l(s.depth_std), "albedo": _l(s.albedo),
-                              "albedo_std": _l(s.albedo_std), "mask": s.mask.astype(int).tolist()},
+                              "albedo_std": _l(s.albedo_std), "mask": s.mask.astype(int).tolist(),
+                              "edge": (s.edge if s.edge is not None else np.zeros(s.shape, bool)).astype(int).tolist()},
                      "irf_fwhm": s.fwhm_irf, "irf_sigma": s.sigma_irf, "irf_sigma_std": _f(s.sigma_irf_std),
                      "response": s.response, "irf_tail": _f(s.tail), "irf_tail_std": _f(s.tail_std),
                      "brdf": s.brdf,

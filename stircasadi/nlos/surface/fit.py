@@ -39,7 +39,11 @@ Steps
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
    is above a tenth of the largest and ``mask_z`` std above 0, on its own or as the mean of the
    node's 3 x 3 neighbourhood (``_mask``: on grids finer than the data resolve each node's own
-   std is large, their mean's is not). Detection: the surface must lower
+   std is large, their mean's is not). The edge map (``_edge``, ``SurfaceResult.edge``) marks
+   the mask nodes whose cell the surface's edge may cut and their eight neighbours: each cell
+   is modelled as uniformly covered, and where the edge cuts one its neighbours' albedos and
+   depths trade with it, an error the Fisher std do not hold (a note in ``extras["notes"]``;
+   the nodes' patches in estimate.json say so). Detection: the surface must lower
    the whitened chi^2 (divided by the inflation) below the no-surface model's (zero albedo) by
    more than the chi^2 quantile of 2 N degrees of freedom at p = ``DETECT_P`` (a likelihood
    ratio with every node's depth and albedo free); else the mask is empty, ``success`` false and
@@ -492,6 +496,12 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 f"points; the data's own largest is {explained['max_data']:.4g}): the surface may be "
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
+    edge = _edge(mask.reshape(shape), rho.reshape(shape))
+    notes = list(notes or [])
+    if edge.any():
+        notes.append(f"{int(edge.sum())} of the {int(mask.sum())} mask nodes lie at the surface's edge "
+                     "(SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
+                     "the noise only, not the error of modelling a partly covered cell as uniform")
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
                        "residual; std inflated by sqrt(chi2/dof))")
@@ -500,7 +510,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     return SurfaceResult(
         grid=grid, depth=z.reshape(shape), albedo=rho.reshape(shape), normals=nrm.reshape(shape + (3,)),
         depth_std=z_std.reshape(shape), albedo_std=rho_std.reshape(shape),
-        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), sigma_irf=float(state.sigma),
+        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), edge=edge, sigma_irf=float(state.sigma),
         sigma_irf_std=gstd.get("sigma"), background=float(state.bg), gain=float(gain_scale),
         prior_weight=float(lam),
         prior_method={"auto": "discrepancy principle", "gcv": "generalised cross-validation",
@@ -522,7 +532,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": float(st.albedo_prior),
                 # what the coarse levels could not do (not reasons: the last level decides)
-                "notes": list(notes or []),
+                "notes": notes,
                 # the last discrepancy choice (prior="auto"): its reference chi^2, target, whether
                 # the slack bound it (then the weight reflects the solve's progress, not the noise)
                 "prior_choice": next((lv["lambda_choice"][-1] for lv in reversed(levels)
@@ -560,6 +570,29 @@ def _mask(grid: DepthGrid, rho, rho_std, C_rho, z: float):
     nb_z = (Bn @ rho) / np.sqrt(np.maximum(var, 1e-300))
     bright = rho > 0.1 * max(float(rho.max()), 1e-300)
     return bright & ((rho > z * rho_std) | (nb_z > z))
+
+
+def _edge(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """(ny, nx) mask nodes at the surface's edge: cells the edge may cut (the mask's outer ring:
+    next to a node outside the mask or the grid's border; or inside it with an albedo below half
+    the mask's 90th percentile) and their eight neighbours. The model spreads each cell's albedo uniformly over it; a cell
+    the support's edge cuts holds its surface off-centre, and its neighbours' albedos and depths
+    trade with it, a model error the Fisher std do not hold (measured on seeded twins,
+    ``benchmarks/surface_coverage.py``: full cells beside partly covered ones at 3-8 std in
+    albedo, and a letter's bar two cells wide trading albedo across its width, while the
+    interior's errors lie within 3)."""
+    from scipy.ndimage import binary_dilation
+
+    if not mask.any():
+        return np.zeros_like(mask, bool)
+    k = np.ones((3, 3), bool)
+    out = np.pad(~mask, 1, constant_values=True)            # outside the mask or the grid
+    # cells the edge may cut: the mask's outer ring (whatever their albedo: a cut cell holds any
+    # fraction of its area) and, inside, any partly covered one (albedo below half the 90th
+    # percentile, even where such cells outnumber the full ones)
+    low = np.pad(mask & (rho < 0.5 * float(np.percentile(rho[mask], 90))), 1, constant_values=False)
+    cut = binary_dilation(out, structure=k) | low
+    return mask & binary_dilation(cut, structure=k)[1:-1, 1:-1]
 
 
 def _normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:

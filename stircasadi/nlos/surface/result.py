@@ -43,6 +43,9 @@ class SurfaceResult:
     tail_std: float | None = None
     brdf: str = "lambertian"
     fwhm_irf: float = 0.0
+    #: (ny, nx) mask nodes at the surface's edge (a cell the edge may cut, or its neighbour):
+    #: their std hold the noise only, not the error of a partly covered cell (``fit._edge``)
+    edge: np.ndarray | None = None
     levels: list = field(default_factory=list)
     wall_time_s: float = 0.0
     reasons: list = field(default_factory=list)
