@@ -1,52 +1,13 @@
-"""Synthetic relay-wall twins rendered by the project's forward model (``transport.simulate``).
-
-A planar wall z = 0 (normal +z) of n x n small Lambertian patches; the hidden scene is a set of
-small patches at z > 0 declared hidden (the camera and the source never see them); the source
-and camera sit in front of the wall, on the hidden side, as in a real relay-wall setup. The
-STIR is simulated with ``legs_included=False`` (rectified, t = 0 at the wall), three bounces:
-the only non-zero returns between distinct times are wall -> hidden -> wall. Confocal captures
-keep the diagonal (i, i); paired captures keep chosen (laser, detector) pairs.
-"""
+"""Relay-wall twins for the tests: the renderers and the seeded surface generator live in
+``stircasadi.testing.surfaces`` (re-exported here); this module adds the letter bitmaps, the
+fixed-extent fit of a twin, and a twin of the Stanford release rendered by quadrature."""
 from __future__ import annotations
 
 import numpy as np
 
-from stircasadi.brdf import Lambertian
-from stircasadi.capture import Capture
-from stircasadi.irf import GaussianIRF
-from stircasadi.scene import Patch, Scene
-from stircasadi.sensor import Sensor
-from stircasadi.timegrid import TimeGrid
-from stircasadi.transport import simulate
-
-WALL_RHO = 0.8
-
-
-def surface_patches(depth_fn, half: float, n: int, rho=0.7, mask=None, normal_fn=None, cells: bool = False):
-    """Hidden patches on z = depth_fn(x, y) over [-half, half]^2, n x n nodes, facing the wall.
-    With ``cells`` the patches sit at the centres of n x n cells tiling the square (a continuous
-    surface of exactly that support), else on its corners' grid.
-
-    Returns (patches, truth dict with positions, normals, areas, albedo, (n, n) grids)."""
-    lin = (np.linspace(-half, half, n + 1)[:-1] + half / n) if cells else np.linspace(-half, half, n)
-    yy, xx = np.meshgrid(lin, lin, indexing="ij")
-    zz = depth_fn(xx, yy)
-    h = lin[1] - lin[0]
-    gy, gx = np.gradient(zz, h, h)
-    nrm = np.stack([gx, gy, -np.ones_like(zz)], axis=-1)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    rho_map = np.broadcast_to(np.asarray(rho, float), zz.shape)
-    area = h * h * np.sqrt(1 + gx ** 2 + gy ** 2)
-    keep = np.ones_like(zz, bool) if mask is None else np.asarray(mask, bool)
-    patches = []
-    for iy in range(n):
-        for ix in range(n):
-            if keep[iy, ix] and rho_map[iy, ix] > 0:
-                patches.append(Patch((xx[iy, ix], yy[iy, ix], zz[iy, ix]), tuple(nrm[iy, ix]),
-                                     float(area[iy, ix]), Lambertian(float(rho_map[iy, ix])), hidden=True))
-    truth = {"x": lin, "y": lin, "depth": zz, "normal": nrm, "albedo": np.where(keep, rho_map, 0.0),
-             "mask": keep & (rho_map > 0), "area": area}
-    return patches, truth
+from stircasadi.testing.surfaces import (TWIN_KINDS, WALL_RHO, confocal_capture, paired_capture,  # noqa: F401
+                                         random_surface_twin, render, score_surface, surface_patches,
+                                         wall_patches)
 
 
 def letter_mask(rows, n_sub: int) -> np.ndarray:
@@ -90,66 +51,6 @@ def twin_fit(cap, truth, half: float, n: int, gain: float | None = (WALL_RHO / n
     return res, {"on": full, "depth_err": err[full], "depth_std": res.depth_std[full],
                  "normal_deg": ang[full], "albedo_err": (res.albedo - alb)[full],
                  "albedo_std": res.albedo_std[full], "albedo_off": res.albedo[~full & (alb == 0)]}
-
-
-def wall_patches(n: int, half: float):
-    lin = np.linspace(-half, half, n)
-    yy, xx = np.meshgrid(lin, lin, indexing="ij")
-    a = (2 * half / (n - 1)) ** 2 * 0.25
-    return [Patch((float(x), float(y), 0.0), (0.0, 0.0, 1.0), a, Lambertian(WALL_RHO))
-            for x, y in zip(xx.ravel(), yy.ravel())]
-
-
-def render(n_wall: int, half: float, hidden: list, bin_width=0.005, n_bins=360, fwhm=0.012,
-           source=(0.0, -0.9, 0.6)):
-    """Full rectified STIR (n_wall^2, n_wall^2, n_bins) of wall + hidden patches."""
-    wall = wall_patches(n_wall, half)
-    scene = Scene(wall + list(hidden), source=source)
-    grid = TimeGrid(0.0, bin_width, n_bins)
-    tr = simulate(scene, grid, Sensor(irf=GaussianIRF(fwhm)), method="bounces", bounces=3,
-                  legs_included=False, allow_truncation=True)
-    xyz = scene.positions[: n_wall * n_wall]
-    return tr.stir, grid, xyz
-
-
-def confocal_capture(stir, grid, xyz, noise_rel=0.0, seed=0, fwhm=None):
-    """Diagonal of the STIR as a confocal capture, with Gaussian noise of ``noise_rel`` x the
-    largest hidden return (the first bounce at t = 0 is dropped by the estimators' gate)."""
-    n = stir.shape[0]
-    tr = stir[np.arange(n), np.arange(n)].copy()
-    return _capture(tr, np.stack([np.arange(n)] * 2, 1), grid, xyz, xyz, noise_rel, seed, fwhm,
-                    same_ids=True)
-
-
-def paired_capture(stir, grid, xyz, laser_rows, noise_rel=0.0, seed=0, fwhm=None):
-    """Traces (laser l, every detector) for l in ``laser_rows``: a non-confocal capture."""
-    n = stir.shape[0]
-    li, dj = np.meshgrid(np.asarray(laser_rows), np.arange(n), indexing="ij")
-    li, dj = li.ravel(), dj.ravel()
-    keep = li != dj
-    li, dj = li[keep], dj[keep]
-    tr = stir[li, dj].copy()
-    ids = np.arange(n)
-    return _capture(tr, np.stack([li, dj + n], 1), grid, xyz, xyz, noise_rel, seed, fwhm,
-                    same_ids=False, ids=ids)
-
-
-def _capture(tr, pairs, grid, lxyz, dxyz, noise_rel, seed, fwhm, same_ids, ids=None):
-    gate = grid.centres > 0.1
-    peak = float(np.max(np.abs(tr[:, gate]))) if gate.any() else 1.0
-    sigma = noise_rel * peak
-    if sigma > 0:
-        tr = tr + np.random.default_rng(seed).normal(0.0, sigma, tr.shape)
-    n = len(lxyz)
-    ids = np.arange(n)
-    irf = None
-    if fwhm is not None:
-        from stircasadi.irf import sampled
-        irf = sampled(GaussianIRF(fwhm), grid.bin_width)
-    return Capture(grid=grid, traces=tr, pairs=pairs, legs_included=False,
-                   illuminated_xyz=lxyz, observed_xyz=dxyz, illuminated_ids=ids,
-                   observed_ids=ids if same_ids else ids + n, irf=irf,
-                   noise={"model": "gaussian", "sigma": sigma} if sigma > 0 else {"model": "none"})
 
 
 #: the response measured on the Stanford 40 cm charts' direct return (``surface.direct``, 16 ps):
