@@ -575,12 +575,13 @@ def _mask(grid: DepthGrid, rho, rho_std, C_rho, z: float):
 def _edge(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """(ny, nx) mask nodes at the surface's edge: cells the edge may cut (the mask's outer ring:
     next to a node outside the mask or the grid's border; or inside it with an albedo below half
-    the mask's 90th percentile) and their eight neighbours. The model spreads each cell's albedo uniformly over it; a cell
-    the support's edge cuts holds its surface off-centre, and its neighbours' albedos and depths
-    trade with it, a model error the Fisher std do not hold (measured on seeded twins,
-    ``benchmarks/surface_coverage.py``: full cells beside partly covered ones at 3-8 std in
-    albedo, and a letter's bar two cells wide trading albedo across its width, while the
-    interior's errors lie within 3)."""
+    the mask's 90th percentile) and their eight neighbours. The model spreads each cell's albedo
+    uniformly over it; a cell the support's edge cuts holds its surface off-centre, and its
+    neighbours' albedos and depths trade with it, a model error the Fisher std do not hold
+    (``benchmarks/surface_coverage.py``: full cells beside partly covered ones at 3-8 std in
+    albedo, a letter's bar two cells wide trading albedo across its width). On paired relays at
+    noise below about 0.5 % the error reaches beyond this band (BENCHMARKS.md, "Surface fit on
+    seeded random twins")."""
     from scipy.ndimage import binary_dilation
 
     if not mask.any():
