@@ -54,7 +54,7 @@ def verdict(success: bool, sc: dict) -> str:
     n = sc["n_numbers"]
     if n == 0:     # no claim on the support (every full node marked edge, or none)
         return "OK" if sc["mask_off_support"] <= 0.1 * max(sc["mask_nodes"], 1) else "SILENT-WRONG"
-    k = int(round((1.0 - sc["coverage2"]) * n))
+    k = sc["beyond2"] if "beyond2" in sc else int(round((1.0 - sc["coverage2"]) * n))   # (older records)
     if binom.sf(k - 1, n, P_BEYOND2) < P_TEST or sc["beyond4"] > 0.02 * n + 0.5 or sc["full_in_mask"] < 0.5:
         return "SILENT-WRONG"
     return "OK"

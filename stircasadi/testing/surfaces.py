@@ -259,7 +259,7 @@ def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
             "albedo_mae": float(np.mean(np.abs(da))) if full.any() else None,
             "n_inner": int(inner.sum()),
             "coverage2": float(np.mean(ratio < 2.0)) if ratio.size else None,
-            "beyond4": int(np.sum(ratio > 4.0)), "n_numbers": int(ratio.size),
+            "beyond2": int(np.sum(ratio >= 2.0)), "beyond4": int(np.sum(ratio > 4.0)), "n_numbers": int(ratio.size),
             "edge_coverage2": float(np.mean(r_edge < 2.0)) if r_edge.size else None,
             "edge_beyond4": int(np.sum(r_edge > 4.0)),
             "full_in_mask": float(np.mean(m[full])) if full.any() else None,
