@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stircasadi.nlos.surface.fit import _edge
+from stircasadi.nlos.surface.mask import edge_map as _edge
 from stircasadi.testing.surfaces import TWIN_KINDS, random_surface_twin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

@@ -38,8 +38,8 @@ Steps
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
    is above a tenth of the largest and ``mask_z`` std above 0, on its own or as the mean of the
-   node's 3 x 3 neighbourhood (``_mask``: on grids finer than the data resolve each node's own
-   std is large, their mean's is not). The edge map (``_edge``, ``SurfaceResult.edge``) marks
+   node's 3 x 3 neighbourhood (``mask.surface_mask``: on grids finer than the data resolve each node's own
+   std is large, their mean's is not). The edge map (``mask.edge_map``, ``SurfaceResult.edge``) marks
    the mask nodes whose cell the surface's edge may cut and their eight neighbours: each cell
    is modelled as uniformly covered, and where the edge cuts one its neighbours' albedos and
    depths trade with it, an error the Fisher std do not hold (a note in ``extras["notes"]``;
@@ -82,6 +82,7 @@ from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
+from .mask import edge_map, surface_mask
 from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
@@ -468,7 +469,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
     vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
     n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
-    mask = _mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
+    mask = surface_mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
     # detection: the surface must lower chi^2 below what the same window holds without it (zero
     # albedo, the fitted background and response) by more than chance would with 2 N free node
     # unknowns (likelihood ratio at p = DETECT_P, chi^2 scaled by the inflation); else the data
@@ -496,7 +497,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 f"points; the data's own largest is {explained['max_data']:.4g}): the surface may be "
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
-    edge = _edge(mask.reshape(shape), rho.reshape(shape))
+    edge = edge_map(mask.reshape(shape), rho.reshape(shape))
     notes = list(notes or [])
     if edge.any():
         notes.append(f"{int(edge.sum())} of the {int(mask.sum())} mask nodes lie at the surface's edge "
@@ -542,58 +543,6 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 {"amplitude": state.bg1, "length_m": state.bgtau},
                 "residual_chi2_per_trace": (np.sum(wgt * r * r, axis=1)).tolist()
                 if rl.n_traces <= 4096 else None})
-
-
-def _neighbourhood_mean(grid: DepthGrid):
-    """Sparse (N, N) operator: the mean over each node's 3 x 3 neighbourhood (the nodes of the
-    grid among them; nodes are row-major over (y, x), so the neighbourhood is the Kronecker
-    product of the two axes' tridiagonal ones)."""
-    import scipy.sparse as sp
-    ny, nx = grid.shape
-
-    def tri(n):
-        return sp.diags([np.ones(n - 1), np.ones(n), np.ones(n - 1)], [-1, 0, 1])
-
-    B = sp.kron(tri(ny), tri(nx), format="csr")
-    return sp.diags(1.0 / np.asarray(B.sum(axis=1)).ravel()) @ B
-
-
-def _mask(grid: DepthGrid, rho, rho_std, C_rho, z: float):
-    """Nodes where the data see a surface: albedo at least a tenth of the largest, and significant
-    at ``z`` std on its own or as the mean of its 3 x 3 neighbourhood (std from the albedos' full
-    covariance ``C_rho``). On a grid finer than the data resolve, neighbouring albedos are
-    anticorrelated and each node's own std is large while their mean is well determined: the
-    tilted-plane twin with 12 x 12 nodes over 8 x 8 traces had 21 of its 64 support nodes
-    significant on their own."""
-    Bn = _neighbourhood_mean(grid)
-    var = np.asarray(Bn.multiply(np.asarray(Bn @ C_rho)).sum(axis=1)).ravel()     # diag(Bn C Bn^T)
-    nb_z = (Bn @ rho) / np.sqrt(np.maximum(var, 1e-300))
-    bright = rho > 0.1 * max(float(rho.max()), 1e-300)
-    return bright & ((rho > z * rho_std) | (nb_z > z))
-
-
-def _edge(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    """(ny, nx) mask nodes at the surface's edge: cells the edge may cut (the mask's outer ring:
-    next to a node outside the mask or the grid's border; or inside it with an albedo below half
-    the mask's 90th percentile) and their eight neighbours. The model spreads each cell's albedo
-    uniformly over it; a cell the support's edge cuts holds its surface off-centre, and its
-    neighbours' albedos and depths trade with it, a model error the Fisher std do not hold
-    (``benchmarks/surface_coverage.py``: full cells beside partly covered ones at 3-8 std in
-    albedo, a letter's bar two cells wide trading albedo across its width). On paired relays at
-    noise below about 0.5 % the error reaches beyond this band (BENCHMARKS.md, "Surface fit on
-    seeded random twins")."""
-    from scipy.ndimage import binary_dilation
-
-    if not mask.any():
-        return np.zeros_like(mask, bool)
-    k = np.ones((3, 3), bool)
-    out = np.pad(~mask, 1, constant_values=True)            # outside the mask or the grid
-    # cells the edge may cut: the mask's outer ring (whatever their albedo: a cut cell holds any
-    # fraction of its area) and, inside, any partly covered one (albedo below half the 90th
-    # percentile, even where such cells outnumber the full ones)
-    low = np.pad(mask & (rho < 0.5 * float(np.percentile(rho[mask], 90))), 1, constant_values=False)
-    cut = binary_dilation(out, structure=k) | low
-    return mask & binary_dilation(cut, structure=k)[1:-1, 1:-1]
 
 
 def _normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:

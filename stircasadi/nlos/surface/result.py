@@ -44,7 +44,7 @@ class SurfaceResult:
     brdf: str = "lambertian"
     fwhm_irf: float = 0.0
     #: (ny, nx) mask nodes at the surface's edge (a cell the edge may cut, or its neighbour):
-    #: their std hold the noise only, not the error of a partly covered cell (``fit._edge``)
+    #: their std hold the noise only, not the error of a partly covered cell (``mask.edge_map``)
     edge: np.ndarray | None = None
     levels: list = field(default_factory=list)
     wall_time_s: float = 0.0
