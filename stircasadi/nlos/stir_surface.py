@@ -28,14 +28,16 @@ Steps of :func:`hidden_surface_from_stir`
    albedo is absolute, per unit area of the surface).
 
 Status (measured on the twin, ``python -m stircasadi.nlos.stir_surface --noise 1e-8 --ill-step
-12``: 882 traces, 6 x 6 coarse then 8 x 8 nodes, 10 LM iterations): not yet a reliable
-reconstruction. The final fit stops at its iteration limit with chi2/dof 2.05; 34 of the 49
-patches fall in its mask, depth errors median 1.4 cm (p90 4.2 cm), normals median 7.5 deg, and
-the Fisher std (median 0.4 mm) do not cover the errors (|err|/std median 37). 458 s, 4.1 GB
-peak. Suspected causes: point patches (fill factor 0.625) against a continuous-cell model, the
-frame search (the final frame is 18 deg off the panel's plane, its extent 1.6 x 1.1 m for a
-0.5 m panel). At the problem's own 1e-6 (``--noise 1e-6 --ill-step 12``) the third bounce is ~1
-noise std per bin (total SNR ~98 over all 9604 traces): the fit's mask keeps 2 of 64 nodes, no
+12``: 882 traces, 6 x 6 coarse then 8 x 8 nodes, 10 LM iterations; BENCHMARKS.md): not yet a
+reliable reconstruction. 109 s, 1.8 GB (2026-12-03); the final fit stops at its iteration limit with chi2/dof
+2.03, 32 of the 49 patches inside its 19-node mask, depth errors median 9.7 mm (p90 6.0 cm),
+normals 7.1 deg, |err|/std median 35: flagged (iteration limit, unexplained returns, chi2/dof).
+The frame found is 13.6 deg off the panel's plane and its extent 1.6 x 1.2 m for a 0.56 m panel
+(the coarse fit's mask spreads 0.4-0.7 m beyond the panel, in its plane); with the panel's own
+plane given (diagnosis only) and 12 x 12 nodes over +-0.48 m the depth error median is 5.4 mm,
+still flagged (chi2/dof 2.05: 49 point patches at 8 cm with random albedos against continuous
+cells). At the problem's own 1e-6 (``--noise 1e-6 --ill-step 12``) the third bounce is ~1 noise
+std per bin (total SNR ~98 over all 9604 traces): the fit's mask keeps 2 of 64 nodes, no
 patch falls inside it (chi2/dof 1.0; 551 s, 3.7 GB).
 Measured 2026-12-02 (``--noise 1e-6 --ill-step 10 --iter 15``, 356 s, 3.7 GB): 14 mask nodes,
 chi2/dof 0.998, detection passed, no reason given, yet no patch inside the mask (nodes 0.6-2.4 m
