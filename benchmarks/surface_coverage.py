@@ -19,10 +19,9 @@ claims, the full nodes it does not mark as ``edge`` (more of their depths and al
 std than calibrated std give with probability 1 %, binomially; or more than 2 % of them beyond 4
 std; or fewer than half of the full nodes in its mask), or, with no such node, more than a tenth
 of its mask off the support; OK otherwise. The pooled coverage of the OK scenes' claims is the
-study's measure of calibration. The edge nodes' coverage is printed apart (their std exclude the partial-cell
-error, as the fit's note says). Prints one
-row per scene and a summary, and writes ``benchmarks/results/surface_coverage_<first>_<last>.json``
-after every scene.
+study's measure of calibration; the edge nodes' coverage is printed apart (their std exclude the
+partial-cell error, as the fit's note says). Prints one row per scene and a summary, and writes
+``benchmarks/results/surface_coverage_<first>_<last>.json`` after every scene.
 """
 from __future__ import annotations
 
@@ -38,24 +37,24 @@ sys.path.insert(0, str(ROOT))
 RESULTS = ROOT / "benchmarks" / "results"
 
 
-#: the two-sided Gaussian probability beyond 2 std, and the false-alarm probability of the
-#: per-scene coverage test
-P_BEYOND2, P_TEST = 0.0455, 0.01
+#: the false-alarm probability of the per-scene coverage test
+P_TEST = 0.01
 
 
 def verdict(success: bool, sc: dict) -> str:
-    """FLAGGED, SILENT-WRONG or OK (the module docstring). The coverage test is binomial: with n
-    claims (a few to a few dozen per scene) a scene fails when its count beyond 2 std is one that
-    calibrated std reach with probability below ``P_TEST``, or a claim lies beyond 4 std."""
-    from scipy.stats import binom
+    """FLAGGED, SILENT-WRONG or OK (the module docstring). The coverage test is binomial
+    (``stircasadi.testing.coverage_interval``, one-sided): with n claims (a few to a few dozen per
+    scene) a scene fails when fewer lie within 2 std than calibrated std give with probability
+    ``P_TEST``, or a claim lies beyond 4 std."""
+    from stircasadi.testing import coverage_interval, nominal_coverage
 
     if not success:
         return "FLAGGED"
     n = sc["n_numbers"]
     if n == 0:     # no claim on the support (every full node marked edge, or none)
         return "OK" if sc["mask_off_support"] <= 0.1 * max(sc["mask_nodes"], 1) else "SILENT-WRONG"
-    k = sc["beyond2"] if "beyond2" in sc else int(round((1.0 - sc["coverage2"]) * n))   # (older records)
-    if binom.sf(k - 1, n, P_BEYOND2) < P_TEST or sc["beyond4"] > 0.02 * n + 0.5 or sc["full_in_mask"] < 0.5:
+    lo, _ = coverage_interval(n, nominal_coverage(2.0), alpha=P_TEST, side="under")
+    if n - sc["beyond2"] < lo or sc["beyond4"] > 0.02 * n + 0.5 or sc["full_in_mask"] < 0.5:
         return "SILENT-WRONG"
     return "OK"
 

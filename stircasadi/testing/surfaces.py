@@ -238,22 +238,22 @@ def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
     nt /= np.linalg.norm(nt, axis=-1, keepdims=True)
     edge = res.edge if res.edge is not None else np.zeros(full.shape, bool)
 
-    def ratios(sel):
-        dz, da = (res.depth - zc)[sel], (res.albedo - truth["albedo"])[sel]
-        return np.concatenate([np.abs(dz) / np.maximum(res.depth_std[sel], 1e-300),
-                               np.abs(da) / np.maximum(res.albedo_std[sel], 1e-300)])
+    err_d, err_a = res.depth - zc, res.albedo - truth["albedo"]
+    z_d = err_d / np.maximum(res.depth_std, 1e-300)         # errors in std, per node
+    z_a = err_a / np.maximum(res.albedo_std, 1e-300)
 
-    dz = (res.depth - zc)[full]
-    da = (res.albedo - truth["albedo"])[full]
+    def ratios(sel):
+        return np.abs(np.concatenate([z_d[sel], z_a[sel]]))
+
+    dz, da = err_d[full], err_a[full]
     inner = full & ~edge                # the claims: full nodes the fit does not mark as edge
     ratio, r_edge = ratios(inner), ratios(full & edge)
     ang = np.degrees(np.arccos(np.clip(np.sum(res.normals * nt, axis=-1), -1, 1)))[full]
     m = res.mask
     extra = {}
     if maps:     # per node: the full-cell mask and the errors in std (NaN off the full nodes)
-        zmap = np.where(full, (res.depth - zc) / res.depth_std, np.nan)
-        amap = np.where(full, (res.albedo - truth["albedo"]) / res.albedo_std, np.nan)
-        extra = {"full": full, "depth_z": zmap, "albedo_z": amap, "depth_err": np.where(full, res.depth - zc, np.nan)}
+        extra = {"full": full, "depth_z": np.where(full, z_d, np.nan), "albedo_z": np.where(full, z_a, np.nan),
+                 "depth_err": np.where(full, err_d, np.nan)}
     return extra | {"n_full": int(full.sum()), "depth_mae": float(np.mean(np.abs(dz))) if full.any() else None,
             "normal_deg_median": float(np.median(ang)) if full.any() else None,
             "albedo_mae": float(np.mean(np.abs(da))) if full.any() else None,
