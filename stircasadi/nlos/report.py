@@ -32,7 +32,7 @@ def _surface_patches(est):
     _, _, area = s.grid.geometry(s.depth.ravel())
     rho, rstd = s.albedo.ravel(), s.albedo_std.ravel()
     mask = s.mask.ravel()
-    edge = s.edge.ravel() if s.edge is not None else np.zeros(mask.shape, bool)
+    edge = s.edge.ravel()
     rel = "relative albedo: the relay's absolute gain is unknown (scaled by one global factor)"
     out = []
     for k in range(len(P)):
@@ -114,7 +114,7 @@ def json_dict(est) -> dict:
         surf.update({"grid": {"x": _l(s.grid.x), "y": _l(s.grid.y)},
                      "maps": {"depth": _l(s.depth), "depth_std": _l(s.depth_std), "albedo": _l(s.albedo),
                               "albedo_std": _l(s.albedo_std), "mask": s.mask.astype(int).tolist(),
-                              "edge": (s.edge if s.edge is not None else np.zeros(s.shape, bool)).astype(int).tolist()},
+                              "edge": s.edge.astype(int).tolist()},
                      "irf_fwhm": s.fwhm_irf, "irf_sigma": s.sigma_irf, "irf_sigma_std": _f(s.sigma_irf_std),
                      "response": s.response, "irf_tail": _f(s.tail), "irf_tail_std": _f(s.tail_std),
                      "brdf": s.brdf,

@@ -236,7 +236,7 @@ def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
     dzy = (truth["depth_fn"](X, Y + e) - truth["depth_fn"](X, Y - e)) / (2 * e)
     nt = np.stack([dzx, dzy, -np.ones_like(dzx)], -1)
     nt /= np.linalg.norm(nt, axis=-1, keepdims=True)
-    edge = res.edge if res.edge is not None else np.zeros(full.shape, bool)
+    edge = res.edge
 
     err_d, err_a = res.depth - zc, res.albedo - truth["albedo"]
     z_d = err_d / np.maximum(res.depth_std, 1e-300)         # errors in std, per node

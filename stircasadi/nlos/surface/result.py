@@ -44,12 +44,17 @@ class SurfaceResult:
     brdf: str = "lambertian"
     fwhm_irf: float = 0.0
     #: (ny, nx) mask nodes at the surface's edge (a cell the edge may cut, or its neighbour):
-    #: their std hold the noise only, not the error of a partly covered cell (``mask.edge_map``)
+    #: their std hold the noise only, not the error of a partly covered cell (``mask.edge_map``;
+    #: None: no node marked, set in __post_init__)
     edge: np.ndarray | None = None
     levels: list = field(default_factory=list)
     wall_time_s: float = 0.0
     reasons: list = field(default_factory=list)
     extras: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.edge is None:       # a result built without one (tests, readers): no node marked
+            self.edge = np.zeros(np.shape(self.mask), bool)
 
     @property
     def shape(self) -> tuple:
