@@ -75,7 +75,9 @@ def run_one(seed: int, nodes: int, levels: int, prior) -> dict:
     sc = score_surface(res, truth)
     return {"seed": seed, "scene": desc, "kind": truth["kind"], "relay": truth["relay"],
             "noise": truth["noise"], "render_s": t1 - t0, "fit_s": time.perf_counter() - t1,
-            "success": bool(res.success), "chi2_dof": float(res.chi2_dof), "reasons": list(res.reasons),
+            "success": bool(res.success), "chi2_dof": float(res.chi2_dof), "dof": int(res.dof),
+            "reasons": list(res.reasons),
+            "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
             "verdict": verdict(bool(res.success), sc), **sc}
 
 

@@ -43,15 +43,19 @@ def test_relay_amplitude_and_delay_match_transport():
     assert t_mean == pytest.approx(relay_delay(L, D, X, 0.0), abs=1e-4)
 
 
-@pytest.mark.parametrize("kind, brdf, confocal, slow, direct, sub, foot", [
-    ("gaussian", "lambertian", False, (), False, 1, False),
-    ("emg", "lambertian", False, ((0.03, 0.3),), False, 2, True),
-    ("emg", "retroreflective", True, ((0.03, 0.3), (0.1, 0.2)), True, 1, True),
-    ("gaussian", "lambertian", True, ((0.05, 0.4),), True, 2, False)])
-def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, confocal, slow, direct, sub, foot):
+@pytest.mark.parametrize("kind, brdf, confocal, slow, direct, sub, foot, offs", [
+    ("gaussian", "lambertian", False, (), False, 1, False, False),
+    ("emg", "lambertian", False, ((0.03, 0.3),), False, 2, True, False),
+    ("emg", "retroreflective", True, ((0.03, 0.3), (0.1, 0.2)), True, 1, True, False),
+    ("gaussian", "lambertian", True, ((0.05, 0.4),), True, 2, False, False),
+    ("gaussian", "lambertian", False, (), False, 1, False, True),
+    ("emg", "lambertian", True, ((0.04, 0.3),), True, 2, True, True)])
+def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, confocal, slow, direct, sub, foot,
+                                                                  offs):
     """g = J^T W r and H = J^T W J of SurfaceModel.linearise against central differences of
-    SurfaceModel.predict, for every unknown (depths, albedos, response, slow tails, background),
-    with and without a trace footprint (``Relay.footprint``: its variance depends on the depths)."""
+    SurfaceModel.predict, for every unknown (depths, albedos, response, slow tails, background,
+    and with ``offs`` the cells' centroid offsets of some nodes), with and without a trace
+    footprint (``Relay.footprint``: its variance depends on the depths)."""
     from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.model import SurfaceState
     from stircasadi.nlos.surface.response import Response
@@ -65,9 +69,11 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
                footprint=rng.uniform(0, 0.01, (5, 2)) ** 2 if foot else None)
     tail = 0.01 if kind == "emg" else 0.0
     model = SurfaceModel(grid, rl, Response(kind, 0.006, tail, slow), brdf, subsamples=sub,
-                         direct=rng.uniform(0.5, 2, 5) if direct else None)
+                         direct=rng.uniform(0.5, 2, 5) if direct else None, offset_nodes=[0, 5, 11] if offs else None)
     st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, tail,
-                      tuple(b for _, b in slow), 0.01, 0.05, 0.2)
+                      tuple(b for _, b in slow), 0.01, 0.05, 0.2,
+                      off=rng.uniform(-0.02, 0.02, (3, 2)) if offs else None)
+    assert model.npar == 2 * grid.n + len(model.glob) + (6 if offs else 0)
     y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
     wgt = rng.uniform(0.5, 2, (5, 150))
     lin = model.linearise(st, y, wgt, dtype=np.float64)
@@ -85,6 +91,8 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
     assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
     assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
     assert np.allclose(lin["m"], model.predict(st), atol=1e-14)
+    if offs:     # the offsets move the cells' returns: their columns are not empty
+        assert np.all(np.diag(lin["H"])[-6:] > 1e-6 * np.median(np.diag(lin["H"])[:grid.n]))
 
 
 def test_footprint_variance_is_the_delay_variance_over_the_block():
@@ -617,7 +625,11 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
                 assert 0 <= so["history"][-1]["newton"] < max(1.0, res.chi2_dof)   # tol_chi2 = 1
             assert np.all(h[:, 1] < h[:, 0]) and np.allclose(h[1:, 0], h[:-1, 1], rtol=1e-12)
             assert h[-1, 1] == pytest.approx(so["f"], rel=1e-12)
-    last = np.array([[e[k] for k in keys] for e in lv[2]["solves"][-1]["history"]])
+    # (on the last level's solve without the cut cells' centroids: a centroid's step of a third
+    # of the response's width is not small; that solve delivered 0.2-0.8 of its predictions)
+    plain = [so for so in lv[2]["solves"] if not so.get("offset_nodes")][-1]
+    assert lv[2]["solves"][-1].get("offset_nodes", 0) > 0       # the plane's edges cut cells
+    last = np.array([[e[k] for k in keys] for e in plain["history"]])
     small = last[last[:, 4] < 1e-3]
     assert len(small) and np.all(np.abs((small[:, 0] - small[:, 1]) / small[:, 2] - 1) < 0.1)
     zt = DepthGrid(truth["x"], truth["y"], res.grid.frame).resample(truth["depth"], res.grid).reshape(res.shape)
@@ -669,7 +681,7 @@ def test_a_solve_cut_by_its_iteration_limit_says_how_far_it_was_from_converging(
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01,
-                                                   max_iter=2), gate=0.2)
+                                                   max_iter=2, edge_offsets=False), gate=0.2)
     so = res.levels[0]["solves"][0]
     assert so["status"] == "Maximum_Iterations_Exceeded" and not res.success
     drop = 2 * (so["history"][-1]["f"] - so["history"][-1]["f_new"])   # no prior: the chi^2 drop
@@ -701,7 +713,7 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
     monkeypatch.setattr(F, "solve_lm", first_cut)
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=2, known_gain=True, sigma0=0.01,
                                                    max_iter=40), gate=0.2)
-    assert calls == [16, 36]
+    assert calls == [16, 36, 36]       # the last level solved again with its cut cells' centroids
     assert res.levels[0]["status"] == "Maximum_Iterations_Exceeded" and res.levels[1]["success"]
     assert not any(r.startswith("level") for r in res.reasons)
     note = [n for n in res.extras["notes"] if n.startswith("level 0 (4x4)")]
@@ -782,7 +794,9 @@ def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilt
     relay = from_capture(cap)
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=60, tol=1e-10, explained=False)
+    # (LM's own stop: one solve per level, without the cut cells' second one)
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=60, tol=1e-10, explained=False,
+              edge_offsets=False)
     quick = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=1.0), gate=0.2)
     full = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=0.0), gate=0.2)
     q, f = quick.levels[0]["solves"][0], full.levels[0]["solves"][0]
@@ -814,7 +828,7 @@ def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation
     relay = from_capture(cap)
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=6)
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=6, edge_offsets=False)
     plain = fit_surface(relay, init, SurfaceSettings(**kw, prior="none"), gate=0.2)
     real, calls = fitmod._choose_lambda, []
 

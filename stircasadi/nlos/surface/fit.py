@@ -31,6 +31,20 @@ Steps
    second solve, 523 -> 323 s at 32 x 32 on the resolution chart, but the start's chi^2 is far
    above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
+   4b. Cut cells (``SurfaceSettings.edge_offsets``): the model spreads each cell's albedo
+   uniformly about its node, but a cell the surface's edge cuts emits from its covered part
+   only, off-centre; on a tilted surface that moves its return in time, the fit answers with
+   depths that alternate row by row over the whole surface (central differences leave the
+   even and odd nodes free of each other) and with the response's width. Measured on seed 310
+   of ``benchmarks/surface_coverage.py`` (a square tilted 20 deg, paired relay, 0.3 % noise):
+   with a grid whose cell boundaries lie on the square's edges chi2/dof 0.999 and every claim
+   within 2 std; shifted by half a cell 1.107 and 8 std errors; with the default extent 1.034,
+   16 of 38 claims beyond 2 std. So the last level is solved once more with the nodes of
+   ``mask.cut_cells`` (the support's border) given a free in-plane centroid each (the
+   covered part's first moment, bounded to the cell; ``SurfaceModel(offset_nodes=...)``),
+   started from its solution, and kept when the likelihood ratio of the two nested models
+   exceeds the chi^2 quantile of 2 K degrees of freedom at p = ``CUT_P`` (``levels[-1]
+   ["cut_cells"]``); on seed 310: chi2/dof 1.000, claims 24 of 24 within 2 std.
    The result is the last level's: a coarser level cut by its iteration limit (or with a
    response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
    last level refits every unknown and is judged by its own solve and the checks below).
@@ -82,7 +96,7 @@ from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
-from .mask import edge_map, surface_mask
+from .mask import cut_cells, edge_map, surface_mask
 from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
@@ -114,6 +128,11 @@ def _support(maps: Maps, st: SurfaceSettings) -> np.ndarray:
     ``init_fraction`` of the largest (a volume's mask keeps only columns far above the median,
     which on a scan full of returns leaves most of the object out)."""
     return maps.mask | (maps.albedo >= st.init_fraction * max(float(maps.albedo.max()), 1e-300))
+
+
+#: false-alarm probability of the likelihood-ratio test that keeps the cut cells' centroids
+#: (step 4b): the nested model with 2 K more unknowns must lower chi^2 by more than chance would
+CUT_P = 0.01
 
 
 def _initial(maps: Maps, grid: DepthGrid, st: SurfaceSettings):
@@ -394,6 +413,40 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 lam = new_lam
                 continue
             break
+        if last and st.edge_offsets:
+            # the cells the edge cuts emit from their covered part: their centroids become
+            # unknowns and the level is solved again from its solution (step 4b)
+            band = cut_cells(state.rho.reshape(grid.shape))
+            if band.size:
+                m_off = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
+                                     offset_nodes=band)
+                b_off = Bounds(m_off, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+                s_off = replace(state, off=np.zeros((band.size, 2)))
+                if st.solver == "lm":
+                    r_off = solve_lm(m_off, y, wgt, s_off, lam, R, b_off, slack, st.max_iter, st.tol, dtype,
+                                     tol_chi2=st.tol_chi2)
+                else:
+                    r_off = solve_level(m_off, y, wgt, s_off, lam, R, b_off, st.max_iter, st.tol)
+                # kept only where the data ask for them: a likelihood ratio of the nested models
+                # (2 K more unknowns) above its chi^2 quantile at p = CUT_P, the statistic
+                # divided by the inflation max(1, chi2/dof); else the uniform cells stand
+                dof_off = max(int(y.size) - m_off.npar, 1)
+                chi2_off = float(m_off.objective(r_off["state"], y, wgt)[0])
+                lr = 2.0 * (float(res["f"]) - float(r_off["f"])) / max(1.0, chi2_off / dof_off)
+                need_lr = float(_chi2_dist.isf(CUT_P, 2 * band.size))
+                kept = lr > need_lr
+                info["cut_cells"] = {"nodes": int(band.size), "lr": lr, "threshold": need_lr, "p": CUT_P,
+                                     "kept": bool(kept), "status": r_off["status"],
+                                     "iterations": r_off["iterations"]}
+                _log.info("level %d (%dx%d) with %d cut cells' centroids: %s, %d it, f=%.6g, LR %.4g (%s)", li,
+                          n, n, band.size, r_off["status"], r_off["iterations"], r_off["f"], lr,
+                          "kept" if kept else f"not kept: below {need_lr:.4g}")
+                if kept:
+                    model, bounds, res, state, lin = m_off, b_off, r_off, r_off["state"], None
+                    info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f",
+                                                               "at_bound", "history") if k in res}
+                                          | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
+                                             "betas": list(state.betas), "offset_nodes": int(band.size)})
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
@@ -428,7 +481,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     rf = relay.window(lo, relay.grid.end)
     rf.gain = rf.gain * gain_scale
     m_full = SurfaceModel(model.grid, rf, model.response(state), model.brdf, False, model.chunk_bytes,
-                          model.sub, q_dir, model.workers)
+                          model.sub, q_dir, model.workers, offset_nodes=model.onodes)
     pred = m_full.predict(state)
     back = m_full.background(state)[0]
     wgt, _ = noise_weights(rf.traces, rf.sigma, st.noise_sigma)
@@ -476,13 +529,14 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     # do not see a surface and the mask is empty
     chi2_0, _ = model.objective(replace(state, rho=np.zeros_like(state.rho)), y, wgt)
     gain_chi2 = (float(chi2_0) - chi2) / infl
-    need = float(_chi2_dist.isf(DETECT_P, 2 * N))
+    n_free = 2 * N + 2 * model.K       # the node unknowns (with any cut cells' centroids)
+    need = float(_chi2_dist.isf(DETECT_P, n_free))
     detected = gain_chi2 > need
     if not detected:
         mask[:] = False
         reasons.append(f"no surface detected: the fitted surface lowers the whitened chi2 by {gain_chi2:.4g}, "
                        f"not more than the {need:.4g} that noise alone reaches with p = {DETECT_P:g} "
-                       f"({2 * N} free node unknowns); the mask is empty (more signal: longer exposure, "
+                       f"({n_free} free node unknowns); the mask is empty (more signal: longer exposure, "
                        "more traces)")
     explained = None
     if st.explained and full is not None:
@@ -530,6 +584,9 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,
+                # the cut cells' fitted centroid offsets (step 4b): node indices, (K, 2) metres
+                "cell_offsets": {"nodes": model.onodes.tolist(),
+                                 "offset_m": model._off(state).tolist()} if model.K else None,
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": float(st.albedo_prior),
                 # what the coarse levels could not do (not reasons: the last level decides)

@@ -42,6 +42,10 @@ class Bounds:
                 lo[2 * N + i], hi[2 * N + i] = beta
             elif name == "bgtau":
                 lo[2 * N + i], hi[2 * N + i] = bgtau
+        if model.K:     # the cells' centroid offsets stay inside their cells
+            g1 = 2 * N + len(model.glob)
+            half = np.tile([0.5 * model.grid.hx, 0.5 * model.grid.hy], model.K)
+            lo[g1:], hi[g1:] = -half, half
         self.lo, self.hi = lo, hi
         self.beta_idx = np.array([2 * N + i for i, k in enumerate(model.glob) if k.startswith("beta")], int)
 
@@ -143,6 +147,13 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
         # neighbours' too: their normals depend on it) is not moved
         free[:N] &= model.seen(st.rho)
         fi = np.flatnonzero(free)
+        # unknowns at a bound that the undamped step would push outward are held there too (one
+        # pass of an active-set refinement: a step the bound cuts off makes no progress; an
+        # offset or an albedo at its bound otherwise stalls the solve with tiny projected steps)
+        if len(fi):
+            d0 = _solve(H[np.ix_(fi, fi)] + 1e-10 * np.diag(dH[fi]), g[fi])
+            out = ((th[fi] <= bounds.lo[fi]) & (d0 < 0)) | ((th[fi] >= bounds.hi[fi]) & (d0 > 0))
+            fi = fi[~out]
         Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]
         if confirm:
             # the last step was small, but a damped step is small wherever mu is large: stop
@@ -170,7 +181,8 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
                 dd = tn - th      # the step taken (clipped and projected)
                 hist.append({"f": float(f), "f_new": float(fn),
                              "predicted": -float(g @ dd + 0.5 * dd @ (H @ dd)),
-                             "mu": float(mu), "dz_max": float(np.max(np.abs(dd[:N]))) if N else 0.0})
+                             "mu": float(mu), "dz_max": float(np.max(np.abs(dd[:N]))) if N else 0.0}
+                            | ({"do_max": float(np.max(np.abs(dd[-2 * model.K:])))} if model.K else {}))
                 rel = (f - fn) / max(abs(f), 1e-300)
                 small = False
                 if tol_chi2 > 0:

@@ -114,9 +114,13 @@ class SurfaceState:
     bg: float
     bg1: float = 0.0
     bgtau: float = 0.1
+    #: (K, 2) in-plane centroid offsets (along u, v; metres) of the cells of the model's
+    #: ``offset_nodes`` (a cell the surface's edge cuts emits from its covered part), or None
+    off: np.ndarray | None = None
 
     def copy(self) -> "SurfaceState":
-        return replace(self, z=np.array(self.z, float), rho=np.array(self.rho, float))
+        return replace(self, z=np.array(self.z, float), rho=np.array(self.rho, float),
+                       off=None if self.off is None else np.array(self.off, float))
 
 
 class SurfaceModel:
@@ -140,11 +144,16 @@ class SurfaceModel:
         geometry, NumPy's ufuncs and BLAS release the GIL); the chunks' sums are added in chunk
         order, so the numbers are the same bit for bit whatever the count (memory: a chunk per
         worker).
+    offset_nodes : nodes whose cell emits from an in-plane centroid offset (ox, oy) that is
+        itself an unknown (``SurfaceState.off``; packed after the globals): a cell the surface's
+        edge cuts is covered on one side only, and a uniform cell at the node puts its return
+        at the wrong delay (measured: seeded twins' depth errors of 5-8 std over the whole
+        surface, its claims' coverage 0.58 -> 0.84 with the true centroids given).
     """
 
     def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
                  fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
-                 direct: np.ndarray | None = None, workers: int = 1):
+                 direct: np.ndarray | None = None, workers: int = 1, offset_nodes=None):
         if brdf not in BRDFS:
             raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
         if brdf == "retroreflective" and not relay.confocal:
@@ -174,20 +183,33 @@ class SurfaceModel:
         self.workers = max(1, int(workers))
         self.sub = max(1, int(subsamples))
         self.footprint = bool(np.any(relay.footprint > 0))
+        on = np.zeros(0, int) if offset_nodes is None else np.unique(np.asarray(offset_nodes, int))
+        if on.size and (on.min() < 0 or on.max() >= self.N):
+            raise ReconstructionError(f"offset_nodes must be node indices in 0..{self.N - 1}; got {on.min()}..{on.max()}.")
+        self.onodes, self.K = on, int(on.size)
         self._build()
         self._maps: dict = {}
 
     # ------------------------------------------------------------------ parameters
     @property
     def npar(self) -> int:
-        return 2 * self.N + len(self.glob)
+        return 2 * self.N + len(self.glob) + 2 * self.K
 
     @staticmethod
     def _get(st: SurfaceState, name: str) -> float:
         return float(st.betas[int(name[4:])]) if name.startswith("beta") else float(getattr(st, name))
 
     def pack(self, st: SurfaceState) -> np.ndarray:
-        return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob]])
+        return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob], self._off(st).ravel()])
+
+    def _off(self, st: SurfaceState) -> np.ndarray:
+        """The state's (K, 2) centroid offsets (zeros where it holds none)."""
+        if st.off is None or self.K == 0:
+            return np.zeros((self.K, 2))
+        off = np.asarray(st.off, float)
+        if off.shape != (self.K, 2):
+            raise ReconstructionError(f"The state's offsets have shape {off.shape}; the model has {self.K} offset nodes.")
+        return off
 
     def unpack(self, theta: np.ndarray, like: SurfaceState) -> SurfaceState:
         N = self.N
@@ -197,8 +219,10 @@ class SurfaceModel:
                 betas[int(k[4:])] = float(theta[2 * N + i])
             else:
                 kw[k] = float(theta[2 * N + i])
+        g1 = 2 * N + len(self.glob)
+        off = np.array(theta[g1:g1 + 2 * self.K], float).reshape(self.K, 2) if self.K else None
         return replace(like, z=np.array(theta[:N], float), rho=np.array(theta[N:2 * N], float),
-                       betas=tuple(betas), **kw)
+                       betas=tuple(betas), off=off, **kw)
 
     def seen(self, rho: np.ndarray, frac: float = 0.02) -> np.ndarray:
         """Nodes whose depth the data constrain: their albedo or a 4-neighbour's (through the
@@ -230,15 +254,17 @@ class SurfaceModel:
     # ------------------------------------------------------------------ CasADi pair geometry
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
-        p = ca.SX.sym("p", 6)          # z, gx, gy, zxx, zyy, zxy of the node
+        p = ca.SX.sym("p", 8)          # z, gx, gy, zxx, zyy, zxy of the node, its cell's centroid ox, oy
         q = ca.SX.sym("q", 21)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain fu2 fv2 dx dy
-        z, gx0, gy0, zxx, zyy, zxy = (p[i] for i in range(6))
-        dx, dy = q[19], q[20]
-        # the sub-sample at in-plane offset (dx, dy) lies on the node's second-order patch
+        z, gx0, gy0, zxx, zyy, zxy, ox, oy = (p[i] for i in range(8))
+        dx, dy = q[19] + ox, q[20] + oy
+        # the sub-sample at in-plane offset (dx, dy) from the node (its cell's centroid moved by
+        # (ox, oy)) lies on the node's second-order patch
         gx = gx0 + zxx * dx + zxy * dy
         gy = gy0 + zxy * dx + zyy * dy
         s = ca.sqrt(1 + gx ** 2 + gy ** 2)
-        X = q[0:3] + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv
+        X = (q[0:3] + ox * u + oy * v
+             + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv)
         nX = -(wv - gx * u - gy * v) / s
         hx, hy = self.grid.hx / self.sub, self.grid.hy / self.sub
         area = hx * hy * s
@@ -275,8 +301,8 @@ class SurfaceModel:
 
     def _geometry(self, t0: int, t1: int, loc, jac: bool):
         """(K, S, 3) values (A, tau, c^2) of the K = traces x nodes pairs' S sub-samples and,
-        with ``jac``, (K, S, 3, 6) d(A, tau, c^2) / d(z, gx, gy, zxx, zyy, zxy) (``loc``: those
-        six per node)."""
+        with ``jac``, (K, S, 3, 8) d(A, tau, c^2) / d(z, gx, gy, zxx, zyy, zxy, ox, oy) (``loc``:
+        those eight per node)."""
         r, N = self.relay, self.N
         S = len(self.offsets)
         nt = t1 - t0
@@ -284,14 +310,14 @@ class SurfaceModel:
         # CasADi's dense matrices are column-major: a (rows, cols) input is a C-ordered
         # (cols, rows) NumPy array, handed over and filled in place through the function's
         # buffer (converting to and from DM took longer than the compiled map itself)
-        Pm = np.ascontiguousarray(np.repeat(np.stack(loc, axis=1), S, axis=0))     # (N S, 6)
+        Pm = np.ascontiguousarray(np.repeat(np.stack(loc, axis=1), S, axis=0))     # (N S, 8)
         off = np.tile(self.offsets, (N, 1))                                        # (N S, 2)
         Xb = np.repeat(self.base, S, axis=0) + off[:, :1] * u[None] + off[:, 1:] * v[None]
         nd = np.ascontiguousarray(np.hstack([Xb, off]))                            # (N S, 5)
         tr = np.ascontiguousarray(np.hstack([r.L[t0:t1], r.D[t0:t1], r.nL[t0:t1], r.nD[t0:t1],
                                              r.leg[t0:t1, None], r.gain[t0:t1, None],
                                              r.footprint[t0:t1]]))                       # (nt, 16)
-        out = np.empty((nt * N * S, 21 if jac else 3))
+        out = np.empty((nt * N * S, 27 if jac else 3))
         buf, run = self._mapped(N * S, nt, jac).buffer()
         for i, a in enumerate((Pm, nd, tr)):
             buf.set_arg(i, memoryview(a))
@@ -300,7 +326,7 @@ class SurfaceModel:
         vals = out[:, :3].reshape(nt * N, S, 3)
         if not jac:
             return vals, None
-        return vals, out[:, 3:].reshape(nt * N, S, 6, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
+        return vals, out[:, 3:].reshape(nt * N, S, 8, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
@@ -375,9 +401,14 @@ class SurfaceModel:
                 yield out
 
     # ------------------------------------------------------------------ evaluation
-    def _local(self, z):
-        """The six local unknowns of every node's patch (``ops`` applied to the depths)."""
-        return [z] + [o @ z for o in self.ops[1:]]
+    def _local(self, z, st: SurfaceState | None = None):
+        """The eight local unknowns of every node's patch (``ops`` applied to the depths; the
+        centroid offsets, zero but at ``onodes``)."""
+        ox, oy = np.zeros(self.N), np.zeros(self.N)
+        if self.K and st is not None:
+            off = self._off(st)
+            ox[self.onodes], oy[self.onodes] = off[:, 0], off[:, 1]
+        return [z] + [o @ z for o in self.ops[1:]] + [ox, oy]
 
     def _core(self, st, resp, t0, t1, loc):
         """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
@@ -391,7 +422,7 @@ class SurfaceModel:
     def predict(self, st: SurfaceState) -> np.ndarray:
         """Model traces (P, T)."""
         resp = self.response(st)
-        loc = self._local(st.z)
+        loc = self._local(st.z, st)
         out = np.empty((self.P, self.T))
         S = len(self.offsets)
 
@@ -417,7 +448,7 @@ class SurfaceModel:
         N, T, w = self.N, self.T, self.w
         S = len(self.offsets)
         z, rho = st.z, st.rho
-        lz = self._local(z)
+        lz = self._local(z, st)
         need_tail = "tail" in self.glob
         dm = resp.d_mode()
         npar = self.npar
@@ -453,12 +484,13 @@ class SurfaceModel:
             # local derivatives (E,), summed over the sub-samples: the six patch unknowns, rho
             #   d m / d p_c = sum_s rho B dA_c + rho A (s dF1 ds_c - dF dtau_c): the window bins'
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
-            ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 6)
+            ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 8)
             Q = np.hstack([rr * Bw, Ar * (s * dF1), -Ar * dF])
-            loc = np.empty((7, len(pe)))
-            for c in range(6):
+            # rows 0-5 the patch's unknowns, 6 the albedo, 7-8 the centroid offsets (with any)
+            loc = np.empty((9 if self.K else 7, len(pe)))
+            for c in [0, 1, 2, 3, 4, 5] + ([6, 7] if self.K else []):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
-                loc[c] = np.einsum("ej,ej->e", Q, Cc[pe])
+                loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, Cc[pe])
             loc[6] = np.sum(Ae * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
@@ -483,12 +515,15 @@ class SurfaceModel:
             ef = resp.tail_filter(e, w, adjoint=True)
             node = pe % N
             er = ef.ravel()[rows_loc]
-            gl = np.stack([np.bincount(node, loc[c] * er, minlength=N) for c in range(7)])
+            gl = np.stack([np.bincount(node, loc[c] * er, minlength=N) for c in range(len(loc))])
             gc = np.zeros(npar)
             gc[:N] = gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
             gc[N:2 * N] = gl[6]
             gcols = [float(np.sum(c * ef)) for c in pre] + [float(np.sum(c * e)) for c in post]
-            gc[2 * N:] = gcols
+            g1 = 2 * N + len(gcols)
+            gc[2 * N:g1] = gcols
+            if self.K:
+                gc[g1:] = np.stack([gl[7][self.onodes], gl[8][self.onodes]], axis=1).ravel()
             return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
@@ -515,7 +550,8 @@ class SurfaceModel:
         R = len(ru)
         rows = rmap[rows_loc]
         ng = len(pre)
-        Jc = np.zeros((R, 2 * N + ng), dtype=dtype)
+        K = self.K
+        Jc = np.zeros((R, 2 * N + ng + 2 * K), dtype=dtype)
         # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
         # (a pair's bin touches one node's six local unknowns), times the stacked operators
         # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
@@ -526,12 +562,21 @@ class SurfaceModel:
         del Jl
         Jc[Jz.row, Jz.col] = Jz.data
         del Jz
-        Jc.ravel()[rows * (2 * N + ng) + N + node] = loc[6]
+        Jc.ravel()[rows * Jc.shape[1] + N + node] = loc[6]
         for i, c in enumerate(pre):
             Jc[:, 2 * N + i] = c.ravel()[ru]
+        if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
+            kmap = np.full(N, -1)
+            kmap[self.onodes] = np.arange(K)
+            kk = kmap[node]
+            on = kk >= 0
+            base = rows[on] * Jc.shape[1] + 2 * N + ng + 2 * kk[on]
+            Jc.ravel()[base] = loc[7][on]
+            Jc.ravel()[base + 1] = loc[8][on]
         if resp.slow:
             Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
-        Jc = np.hstack([Jc] + [c.ravel()[ru][:, None].astype(dtype) for c in post])
+        Jc = np.hstack([Jc[:, :2 * N + ng]] + [c.ravel()[ru][:, None].astype(dtype) for c in post]
+                       + [Jc[:, 2 * N + ng:]])
         Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
         H = _gram_upper(Jc)
         if not resp.slow:

@@ -57,6 +57,10 @@ class SurfaceSettings:
     #: extent) beside the depth's (the integral of (del^2 z)^2), both under the prior's weight;
     #: 0: the albedos are free (on grids finer than the traces they are then not determined)
     albedo_prior: float = 0.0
+    #: the cells the surface's edge may cut (``mask.cut_cells`` on the last level's solution)
+    #: get a free in-plane centroid (the covered part's first moment, within the cell) and the
+    #: last level is solved again with them; False: every cell emits from its node
+    edge_offsets: bool = True
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
     #: "lm": bounded Levenberg-Marquardt with the exact Gauss-Newton matrix (default; 5-20
