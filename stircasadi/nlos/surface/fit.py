@@ -554,9 +554,11 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
     notes = list(notes or [])
     if edge.any():
+        how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
+               "part's shape" if model.K else "a partly covered cell is modelled as uniform")
         notes.append(f"{int(edge.sum())} of the {int(mask.sum())} mask nodes lie at the surface's edge "
                      "(SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
-                     "the noise only, not the error of modelling a partly covered cell as uniform")
+                     f"the noise only, not the error of the edge's model ({how})")
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
                        "residual; std inflated by sqrt(chi2/dof))")

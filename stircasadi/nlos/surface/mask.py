@@ -42,8 +42,8 @@ def cut_cells(rho: np.ndarray) -> np.ndarray:
     level's (ny, nx) albedo map: the support is where the albedos' 3 x 3 neighbourhood mean
     exceeds half its 90th percentile (over the means above a tenth of the largest; the mean,
     because on a grid finer than the data resolve neighbouring albedos alternate); the band is
-    the support's inner ring (a support node with a 4-neighbour outside it) and its outer ring
-    where lit (a node outside with a 4-neighbour inside and an albedo above a quarter of the
+    the support's inner ring (a support node with one of its eight neighbours outside it) and its
+    outer ring where lit (a node outside beside one inside and an albedo above a quarter of the
     support's 90th percentile: at least about a quarter covered). These cells get a free
     centroid (``SurfaceModel(offset_nodes=...)``): a cut cell emits from its covered part.
     (Thresholds: with lit from a twentieth, seed 310 of the study had 42 such nodes where 31
@@ -59,11 +59,11 @@ def cut_cells(rho: np.ndarray) -> np.ndarray:
     mean = convolve(r, k3, mode="constant") / convolve(np.ones_like(r), k3, mode="constant")
     ref = float(np.percentile(mean[mean > 0.1 * mean.max()], 90))
     sup = mean > 0.5 * ref
-    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+    k = np.ones((3, 3), bool)
     outside = np.pad(~sup, 1, constant_values=False)        # the grid's border is not an edge
-    inner = sup & binary_dilation(outside, structure=cross)[1:-1, 1:-1]
+    inner = sup & binary_dilation(outside, structure=k)[1:-1, 1:-1]
     ref_r = float(np.percentile(r[sup], 90)) if sup.any() else float(r.max())
-    outer = ~sup & binary_dilation(sup, structure=cross) & (r > 0.25 * ref_r)
+    outer = ~sup & binary_dilation(sup, structure=k) & (r > 0.25 * ref_r)
     return np.flatnonzero((inner | outer).ravel())
 
 
