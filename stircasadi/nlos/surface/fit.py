@@ -324,6 +324,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     chunk = int(st.chunk_mb * 2 ** 20)
     workers = st.n_threads()
     levels, reasons, notes = [], [], []
+    pending = None     # the last level's iteration-limit message, judged in _finish
     lam = 0.0 if st.prior in ("auto", "gcv", "none") else float(st.prior)
     gain_scale = 1.0
     state = prev = None
@@ -456,11 +457,17 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         said = reasons if last else notes
         if not res["success"]:
             drop = last_decrease(res)
+            cut = drop is not None and res["status"].startswith("Maximum")
             tail = (f" (its last step still lowered the whitened chi2 plus prior by {drop:.4g}: not converged; "
-                    "raise max_iter)") if drop is not None and res["status"].startswith("Maximum") else ""
+                    "raise max_iter)") if cut else ""
             if not last:
                 tail += "; a coarse level only starts the next one"
-            said.append(f"level {li} ({n}x{n}): solver status {res['status']}{tail}")
+            msg = f"level {li} ({n}x{n}): solver status {res['status']}{tail}"
+            if last and cut:
+                pending = (msg, f"level {li} ({n}x{n}): stopped at its iteration limit (its last step lowered "
+                                f"the whitened chi2 plus prior by {drop:.4g})")    # judged in _finish
+            else:
+                said.append(msg)
         if res["at_bound"]:
             said.append(f"level {li}: response parameter(s) {res['at_bound']} at their bounds "
                         f"(sigma in [{sig_b[0]:.3g}, {sig_b[1]:.3g}] m, tail in "
@@ -468,7 +475,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         prev = grid
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
-                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes)
+                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes, pending)
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -491,11 +498,47 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     return out
 
 
+def _remaining_step(model, state, A, g, mask, z_std, rho_std) -> dict:
+    """The undamped Gauss-Newton step from the final state (unknowns at a bound that it pushes
+    outward, and the depths LM does not move, held), in units of the std: its largest change of
+    a mask node's depth or albedo, and of any node's."""
+    N = model.N
+    th = model.pack(state)
+    held = np.zeros(th.size, bool)
+    held[:N] = ~model.seen(state.rho)
+    held[N:2 * N] = (th[N:2 * N] <= 0) & (g[N:2 * N] > 0)
+    if model.K:
+        g1 = 2 * N + len(model.glob)
+        half = np.tile([0.5 * model.grid.hx, 0.5 * model.grid.hy], model.K) * (1 - 1e-9)
+        o, go = th[g1:], g[g1:]
+        held[g1:] = ((o >= half) & (go < 0)) | ((o <= -half) & (go > 0))
+    fi = np.flatnonzero(~held)
+    d = np.zeros(th.size)
+    d[fi] = -np.linalg.solve(A[np.ix_(fi, fi)], g[fi])
+    rz = np.abs(d[:N]) / np.maximum(z_std, 1e-300)
+    rr = np.abs(d[N:2 * N]) / np.maximum(rho_std, 1e-300)
+    both = np.maximum(rz, rr)
+    return {"max_std_mask": float(both[mask].max()) if mask.any() else None,
+            "max_std_any": float(np.max(np.where(held[:N], rr, both))),
+            "decrease_2F": float(-g[fi] @ d[fi])}
+
+
+#: the largest change of a mask node's depth or albedo, in std, that the remaining Gauss-Newton
+#: step of a last level cut by its iteration limit may make for the fit to be judged converged
+#: where it claims a surface (nodes outside the mask, dark specks fitting noise, may still move).
+#: A number off by half its std still lies within 2 std with probability 0.927 (0.954 at its
+#: optimum), and that is the worst mask node's; the others move less
+CONVERGED_STD = 0.5
+
+
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
-            t_start, full=None, lin=None, start=None, notes=None) -> SurfaceResult:
+            t_start, full=None, lin=None, start=None, notes=None, pending=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
-    steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is."""
+    steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is;
+    ``pending``: the last level's iteration-limit messages (reason, note), a reason unless the remaining
+    Gauss-Newton step moves no mask node's depth or albedo by ``CONVERGED_STD`` of its std."""
     grid = model.grid
+    notes = list(notes or [])
     if lin is None:
         lin = model.linearise(state, y, wgt, dtype=np.float64)
     H, chi2 = lin["H"], lin["chi2"]
@@ -529,6 +572,21 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     # do not see a surface and the mask is empty
     chi2_0, _ = model.objective(replace(state, rho=np.zeros_like(state.rho)), y, wgt)
     gain_chi2 = (float(chi2_0) - chi2) / infl
+    remaining = None
+    if pending is not None:
+        gt = np.array(lin["g"], float)
+        if lam > 0:
+            v = prior_vector(state, R.shape[0])
+            gt[:R.shape[0]] += lam * (R @ v)
+        remaining = _remaining_step(model, state, A, gt, mask, z_std, rho_std)
+        worst = remaining["max_std_mask"]
+        if worst is not None and worst < CONVERGED_STD:
+            notes.append(f"{pending[1]}; the remaining Gauss-Newton step moves no mask node's depth or albedo by "
+                         f"more than {worst:.2g} of its std (nodes outside the mask up to {remaining['max_std_any']:.3g}): "
+                         "the surface's numbers are converged")
+        else:
+            reasons.append(pending[0] + ("" if worst is None else
+                                      f"; the remaining Gauss-Newton step moves a mask node by {worst:.3g} std"))
     n_free = 2 * N + 2 * model.K       # the node unknowns (with any cut cells' centroids)
     need = float(_chi2_dist.isf(DETECT_P, n_free))
     detected = gain_chi2 > need
@@ -552,7 +610,6 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
-    notes = list(notes or [])
     if edge.any():
         how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
                "part's shape" if model.K else "a partly covered cell is modelled as uniform")
@@ -586,6 +643,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,
+                # a last level cut by its iteration limit: what the remaining Gauss-Newton step moves
+                "remaining_step": remaining,
                 # the cut cells' fitted centroid offsets (step 4b): node indices, (K, 2) metres
                 "cell_offsets": {"nodes": model.onodes.tolist(),
                                  "offset_m": model._off(state).tolist()} if model.K else None,
