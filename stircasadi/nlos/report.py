@@ -81,10 +81,18 @@ def json_dict(est) -> dict:
     if s is not None:
         # the result is the last level's solve; coarser levels only start it (their status is
         # listed, and a coarse level cut by its iteration limit is a note, not a failure)
-        checks.append({"name": "solver", "passed": bool(s.levels[-1]["success"]) if s.levels else False,
-                       "value": None, "limit": None,
+        # a last level cut by its iteration limit passes when its remaining Gauss-Newton step
+        # moves no mask node by CONVERGED_STD of its std (fit.py, _finish)
+        from .surface.fit import CONVERGED_STD
+        rem = s.extras.get("remaining_step")
+        worst = None if rem is None else rem.get("max_std_mask")
+        solved = bool(s.levels[-1]["success"]) if s.levels else False
+        checks.append({"name": "solver", "passed": solved or (worst is not None and worst < CONVERGED_STD),
+                       "value": worst, "limit": None if rem is None else CONVERGED_STD,
                        "message": "; ".join(f"level {i}{' (coarse: starts the next)' if i < len(s.levels) - 1 else ''}: "
-                                            f"{l['status']}" for i, l in enumerate(s.levels))})
+                                            f"{l['status']}" for i, l in enumerate(s.levels))
+                       + ("" if worst is None else f"; the remaining Gauss-Newton step moves a mask node's depth or "
+                          f"albedo by at most {worst:.3g} std (limit {CONVERGED_STD:g})")})
         lim = 1 + 5 * math.sqrt(2.0 / max(s.dof, 1))
         checks.append({"name": "chi2", "passed": s.chi2_dof <= lim, "value": s.chi2_dof, "limit": lim,
                        "message": f"whitened chi2/dof of the surface fit over {s.dof} dof"

@@ -47,7 +47,12 @@ Steps
    ["cut_cells"]``); on seed 310: chi2/dof 1.000, claims 24 of 24 within 2 std.
    The result is the last level's: a coarser level cut by its iteration limit (or with a
    response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
-   last level refits every unknown and is judged by its own solve and the checks below).
+   last level refits every unknown and is judged by its own solve and the checks below). The
+   last level cut by its iteration limit is judged by its remaining undamped Gauss-Newton step
+   (``_remaining_step``, ``extras["remaining_step"]``): a reason while it moves a mask node's
+   depth or albedo by ``CONVERGED_STD`` (half) of its std or more, else a note (dark specks
+   outside the mask that fit noise kept 7 of 14 held-out study scenes at the limit, their
+   surfaces converged).
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
