@@ -6,7 +6,7 @@ import pytest
 
 from stircasadi.nlos.relay import Relay
 from stircasadi.nlos.surface.grid import DepthGrid
-from stircasadi.nlos.surface.mask import cut_cells
+from stircasadi.nlos.surface.mask import cut_cells, depth_step
 from stircasadi.nlos.surface.model import SurfaceModel, SurfaceState
 from stircasadi.nlos.surface.response import Response
 from stircasadi.timegrid import TimeGrid
@@ -83,3 +83,24 @@ def test_offsets_of_the_wrong_shape_or_nodes_are_refused():
     st = SurfaceState(np.full(9, 0.4), np.full(9, 0.5), 0.008, 0.0, (), 0.0, off=np.zeros((3, 2)))
     with pytest.raises(ReconstructionError, match="offset nodes"):
         m.predict(st)
+
+
+def test_a_depth_step_between_two_parts_of_the_mask_is_found_and_a_steep_plane_is_not():
+    """Two bars 11 cm apart in depth, three nodes (11.4 cm) apart laterally: slope 0.96, found
+    (the pair's nodes, distance and depth difference exact); the same two parts on a plane tilted
+    31 deg (slope 0.6, below 0.7): none; one steep plane in one piece (slope 1.5): none; a step
+    within 3 std of the depths: none."""
+    m = np.zeros((8, 8), bool)
+    m[2:6, 1:3] = True
+    m[2:6, 5:7] = True
+    cols = np.arange(8)[None, :] * np.ones((8, 1))
+    sd = np.full((8, 8), 3e-4)
+    two = np.where(cols < 4, 0.37, 0.48)
+    st = depth_step(m, two, sd, 0.038, 0.05)
+    assert st is not None and sorted(st["nodes"]) == [2 * 8 + 2, 2 * 8 + 5]
+    assert st["distance"] == pytest.approx(3 * 0.038) and st["dz"] == pytest.approx(0.11)
+    assert depth_step(m, 0.37 + 0.6 * cols * 0.038, sd, 0.038, 0.05) is None
+    one = np.zeros((8, 8), bool)
+    one[2:6, 1:7] = True
+    assert depth_step(one, 0.37 + 1.5 * cols * 0.038, sd, 0.038, 0.05) is None
+    assert depth_step(m, two, np.full((8, 8), 0.03), 0.038, 0.05) is None

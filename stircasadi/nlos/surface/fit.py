@@ -101,7 +101,7 @@ from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
-from .mask import cut_cells, edge_map, surface_mask
+from .mask import cut_cells, depth_step, edge_map, surface_mask
 from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
@@ -615,6 +615,13 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
+    step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy)
+    if step is not None:
+        reasons.append(f"two surfaces side by side at different depths: nodes of two separate parts of the "
+                       f"mask {step['distance']:.3g} m apart differ by {step['dz']:.3g} m in depth (slope "
+                       f"{step['slope']:.2g}, beyond 0.7 after 3 std): one height field joins them through the "
+                       "dark nodes between, whose slopes tilt their neighbours' normals, an error the std do "
+                       "not hold; fit each surface over its own extent (SurfaceSettings.extent)")
     if edge.any():
         how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
                "part's shape" if model.K else "a partly covered cell is modelled as uniform")
@@ -648,6 +655,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "detection": {"chi2_gain": gain_chi2, "threshold": need, "p": DETECT_P,
                               "detected": bool(detected)},
                 "explained": explained,
+                "depth_step": step,
                 # a last level cut by its iteration limit: what the remaining Gauss-Newton step moves
                 "remaining_step": remaining,
                 # the cut cells' fitted centroid offsets (step 4b): node indices, (K, 2) metres
