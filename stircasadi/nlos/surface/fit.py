@@ -31,25 +31,16 @@ Steps
    second solve, 523 -> 323 s at 32 x 32 on the resolution chart, but the start's chi^2 is far
    above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
-   4b. Cut cells (``SurfaceSettings.edge_offsets``): the model spreads each cell's albedo
-   uniformly about its node, but a cell the surface's edge cuts emits from its covered part
-   only, off-centre; on a tilted surface that moves its return in time, the fit answers with
-   depths that alternate row by row over the whole surface (central differences leave the
-   even and odd nodes free of each other) and with the response's width. Measured on seed 310
-   of ``benchmarks/surface_coverage.py`` (a square tilted 20 deg, paired relay, 0.3 % noise):
-   with a grid whose cell boundaries lie on the square's edges chi2/dof 0.999 and every claim
-   within 2 std; shifted by half a cell 1.107 and 8 std errors; with the default extent 1.034,
-   16 of 38 claims beyond 2 std. So the last level is solved once more with the nodes of
-   ``mask.cut_cells`` (the support's border) given a free in-plane centroid each (the
-   covered part's first moment, bounded to the cell; ``SurfaceModel(offset_nodes=...)``),
-   started from its solution, and kept when the likelihood ratio of the two nested models
-   exceeds the chi^2 quantile of 2 K degrees of freedom at p = ``CUT_P`` (``levels[-1]
-   ["cut_cells"]``); on seed 310: chi2/dof 1.000, claims 24 of 24 within 2 std.
+   4b. Cut cells (``SurfaceSettings.edge_offsets``, ``cuts.py``): the last level is solved
+   again with the cells the surface's edge cuts given a free in-plane centroid each, kept by a
+   likelihood-ratio test (``levels[-1]["cut_cells"]``). Seed 310 of the study (a square tilted
+   20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
+   std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std.
    The result is the last level's: a coarser level cut by its iteration limit (or with a
    response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
    last level refits every unknown and is judged by its own solve and the checks below). The
    last level cut by its iteration limit is judged by its remaining undamped Gauss-Newton step
-   (``_remaining_step``, ``extras["remaining_step"]``): a reason while it moves a mask node's
+   (``lm.remaining_step``, ``extras["remaining_step"]``): a reason while it moves a mask node's
    depth or albedo by ``CONVERGED_STD`` (half) of its std or more, else a note (dark specks
    outside the mask that fit noise kept 7 of 14 held-out study scenes at the limit, their
    surfaces converged).
@@ -95,13 +86,14 @@ from ...irf import GaussianIRF
 from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
-from .grid import DepthGrid
-from .lm import Bounds, last_decrease, prior_vector, solve_lm
+from .grid import DepthGrid, normal_std
+from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4b's test level, read here)
+from .lm import CONVERGED_STD, Bounds, last_decrease, prior_vector, remaining_step, solve_lm
 from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
-from .mask import cut_cells, depth_step, edge_map, surface_mask
+from .mask import depth_step, edge_map, surface_mask
 from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
@@ -133,11 +125,6 @@ def _support(maps: Maps, st: SurfaceSettings) -> np.ndarray:
     ``init_fraction`` of the largest (a volume's mask keeps only columns far above the median,
     which on a scan full of returns leaves most of the object out)."""
     return maps.mask | (maps.albedo >= st.init_fraction * max(float(maps.albedo.max()), 1e-300))
-
-
-#: false-alarm probability of the likelihood-ratio test that keeps the cut cells' centroids
-#: (step 4b): the nested model with 2 K more unknowns must lower chi^2 by more than chance would
-CUT_P = 0.01
 
 
 def _initial(maps: Maps, grid: DepthGrid, st: SurfaceSettings):
@@ -421,38 +408,28 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             break
         if last and st.edge_offsets:
             # the cells the edge cuts emit from their covered part: their centroids become
-            # unknowns and the level is solved again from its solution (step 4b)
-            band = cut_cells(state.rho.reshape(grid.shape))
-            if band.size:
-                m_off = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
-                                     offset_nodes=band)
-                b_off = Bounds(m_off, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
-                s_off = replace(state, off=np.zeros((band.size, 2)))
+            # unknowns and the level is solved again from its solution (step 4b, ``cuts.py``)
+            def make_model(nodes):
+                return SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
+                                    offset_nodes=nodes)
+
+            def solve(m, b, s0):
                 if st.solver == "lm":
-                    r_off = solve_lm(m_off, y, wgt, s_off, lam, R, b_off, slack, st.max_iter, st.tol, dtype,
-                                     tol_chi2=st.tol_chi2)
-                else:
-                    r_off = solve_level(m_off, y, wgt, s_off, lam, R, b_off, st.max_iter, st.tol)
-                # kept only where the data ask for them: a likelihood ratio of the nested models
-                # (2 K more unknowns) above its chi^2 quantile at p = CUT_P, the statistic
-                # divided by the inflation max(1, chi2/dof); else the uniform cells stand
-                dof_off = max(int(y.size) - m_off.npar, 1)
-                chi2_off = float(m_off.objective(r_off["state"], y, wgt)[0])
-                lr = 2.0 * (float(res["f"]) - float(r_off["f"])) / max(1.0, chi2_off / dof_off)
-                need_lr = float(_chi2_dist.isf(CUT_P, 2 * band.size))
-                kept = lr > need_lr
-                info["cut_cells"] = {"nodes": int(band.size), "lr": lr, "threshold": need_lr, "p": CUT_P,
-                                     "kept": bool(kept), "status": r_off["status"],
-                                     "iterations": r_off["iterations"]}
-                _log.info("level %d (%dx%d) with %d cut cells' centroids: %s, %d it, f=%.6g, LR %.4g (%s)", li,
-                          n, n, band.size, r_off["status"], r_off["iterations"], r_off["f"], lr,
-                          "kept" if kept else f"not kept: below {need_lr:.4g}")
-                if kept:
-                    model, bounds, res, state, lin = m_off, b_off, r_off, r_off["state"], None
+                    return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, tol_chi2=st.tol_chi2)
+                return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
+
+            cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model,
+                                lambda m: Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b), solve)
+            if cut is not None:
+                info["cut_cells"] = cut["info"]
+                _log.info("level %d (%dx%d): %s", li, n, n, cut["info"])
+                if cut["info"]["kept"]:
+                    model, bounds, res, lin = cut["model"], cut["bounds"], cut["res"], None
+                    state = res["state"]
                     info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f",
                                                                "at_bound", "history") if k in res}
                                           | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
-                                             "betas": list(state.betas), "offset_nodes": int(band.size)})
+                                             "betas": list(state.betas), "offset_nodes": int(model.K)})
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
@@ -503,39 +480,6 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     return out
 
 
-def _remaining_step(model, state, A, g, mask, z_std, rho_std) -> dict:
-    """The undamped Gauss-Newton step from the final state (unknowns at a bound that it pushes
-    outward, and the depths LM does not move, held), in units of the std: its largest change of
-    a mask node's depth or albedo, and of any node's."""
-    N = model.N
-    th = model.pack(state)
-    held = np.zeros(th.size, bool)
-    held[:N] = ~model.seen(state.rho)
-    held[N:2 * N] = (th[N:2 * N] <= 0) & (g[N:2 * N] > 0)
-    if model.K:
-        g1 = 2 * N + len(model.glob)
-        half = np.tile([0.5 * model.grid.hx, 0.5 * model.grid.hy], model.K) * (1 - 1e-9)
-        o, go = th[g1:], g[g1:]
-        held[g1:] = ((o >= half) & (go < 0)) | ((o <= -half) & (go > 0))
-    fi = np.flatnonzero(~held)
-    d = np.zeros(th.size)
-    d[fi] = -np.linalg.solve(A[np.ix_(fi, fi)], g[fi])
-    rz = np.abs(d[:N]) / np.maximum(z_std, 1e-300)
-    rr = np.abs(d[N:2 * N]) / np.maximum(rho_std, 1e-300)
-    both = np.maximum(rz, rr)
-    return {"max_std_mask": float(both[mask].max()) if mask.any() else None,
-            "max_std_any": float(np.max(np.where(held[:N], rr, both))),
-            "decrease_2F": float(-g[fi] @ d[fi])}
-
-
-#: the largest change of a mask node's depth or albedo, in std, that the remaining Gauss-Newton
-#: step of a last level cut by its iteration limit may make for the fit to be judged converged
-#: where it claims a surface (nodes outside the mask, dark specks fitting noise, may still move).
-#: A number off by half its std still lies within 2 std with probability 0.927 (0.954 at its
-#: optimum), and that is the worst mask node's; the others move less
-CONVERGED_STD = 0.5
-
-
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
             t_start, full=None, lin=None, start=None, notes=None, pending=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
@@ -569,7 +513,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     vxx = np.asarray((Gx.multiply(GxC)).sum(axis=1)).ravel()
     vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
     vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
-    n_std = _normal_std(grid, gx, gy, vxx, vyy, vxy)
+    n_std = normal_std(grid, gx, gy, vxx, vyy, vxy)
     mask = surface_mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
     # detection: the surface must lower chi^2 below what the same window holds without it (zero
     # albedo, the fitted background and response) by more than chance would with 2 N free node
@@ -583,7 +527,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
         if lam > 0:
             v = prior_vector(state, R.shape[0])
             gt[:R.shape[0]] += lam * (R @ v)
-        remaining = _remaining_step(model, state, A, gt, mask, z_std, rho_std)
+        remaining = remaining_step(model, state, A, gt, mask, z_std, rho_std)
         worst = remaining["max_std_mask"]
         if worst is not None and worst < CONVERGED_STD:
             notes.append(f"{pending[1]}; the remaining Gauss-Newton step moves no mask node's depth or albedo by "
@@ -674,15 +618,3 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 {"amplitude": state.bg1, "length_m": state.bgtau},
                 "residual_chi2_per_trace": (np.sum(wgt * r * r, axis=1)).tolist()
                 if rl.n_traces <= 4096 else None})
-
-
-def _normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:
-    """Std of the unit normal's components from the covariance of the depth gradients."""
-    _, u, v, w = grid.frame
-    s = np.sqrt(1 + gx ** 2 + gy ** 2)
-    a = -(w[None] - gx[:, None] * u[None] - gy[:, None] * v[None])  # unnormalised normal
-    # d(a/s)/dgx = u/s - a gx / s^3 ; d(a/s)/dgy = v/s - a gy / s^3
-    dx = u[None] / s[:, None] - a * (gx / s ** 3)[:, None]
-    dy = v[None] / s[:, None] - a * (gy / s ** 3)[:, None]
-    var = dx ** 2 * vxx[:, None] + dy ** 2 * vyy[:, None] + 2 * dx * dy * vxy[:, None]
-    return np.sqrt(np.maximum(var, 0))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["DepthGrid"]
+__all__ = ["DepthGrid", "normal_std"]
 
 
 def _diff_1d(n: int, h: float) -> sp.csr_matrix:
@@ -131,3 +131,15 @@ class DepthGrid:
     @classmethod
     def square(cls, frame, x_range, y_range, nx: int, ny: int | None = None) -> "DepthGrid":
         return cls(np.linspace(*x_range, nx), np.linspace(*y_range, ny or nx), frame)
+
+
+def normal_std(grid: DepthGrid, gx, gy, vxx, vyy, vxy) -> np.ndarray:
+    """Std of the unit normal's components from the covariance of the depth gradients."""
+    _, u, v, w = grid.frame
+    s = np.sqrt(1 + gx ** 2 + gy ** 2)
+    a = -(w[None] - gx[:, None] * u[None] - gy[:, None] * v[None])  # unnormalised normal
+    # d(a/s)/dgx = u/s - a gx / s^3 ; d(a/s)/dgy = v/s - a gy / s^3
+    dx = u[None] / s[:, None] - a * (gx / s ** 3)[:, None]
+    dy = v[None] / s[:, None] - a * (gy / s ** 3)[:, None]
+    var = dx ** 2 * vxx[:, None] + dy ** 2 * vyy[:, None] + 2 * dx * dy * vxy[:, None]
+    return np.sqrt(np.maximum(var, 0))
