@@ -86,19 +86,24 @@ def test_offsets_of_the_wrong_shape_or_nodes_are_refused():
 
 
 def test_a_depth_step_between_two_parts_of_the_mask_is_found_and_a_steep_plane_is_not():
-    """Two bars 11 cm apart in depth, three nodes (11.4 cm) apart laterally: slope 0.96, found
-    (the pair's nodes, distance and depth difference exact); the same two parts on a plane tilted
-    31 deg (slope 0.6, below 0.7): none; one steep plane in one piece (slope 1.5): none; a step
-    within 3 std of the depths: none."""
-    m = np.zeros((8, 8), bool)
-    m[2:6, 1:3] = True
-    m[2:6, 5:7] = True
+    """Two bars 11 cm apart in depth, two nodes (7.6 cm) apart laterally (one node between, which
+    their normals share): slope 1.45, found (the pair's nodes, distance and depth difference
+    exact); three nodes apart (each side's neighbour free to take its own depth): none; the same
+    two parts on a plane tilted 31 deg (slope 0.6, below 0.7): none; one steep plane in one piece
+    (slope 1.5): none; a step within 3 std of the depths: none."""
     cols = np.arange(8)[None, :] * np.ones((8, 1))
     sd = np.full((8, 8), 3e-4)
-    two = np.where(cols < 4, 0.37, 0.48)
+    two = np.where(cols < 3, 0.37, 0.48)
+    m = np.zeros((8, 8), bool)
+    m[2:6, 1:3] = True
+    m[2:6, 4:6] = True                       # columns 2 and 4: one node (column 3) between
     st = depth_step(m, two, sd, 0.038, 0.05)
-    assert st is not None and sorted(st["nodes"]) == [2 * 8 + 2, 2 * 8 + 5]
-    assert st["distance"] == pytest.approx(3 * 0.038) and st["dz"] == pytest.approx(0.11)
+    assert st is not None and sorted(st["nodes"]) == [2 * 8 + 2, 2 * 8 + 4]
+    assert st["distance"] == pytest.approx(2 * 0.038) and st["dz"] == pytest.approx(0.11)
+    wide = np.zeros((8, 8), bool)
+    wide[2:6, 1:3] = True
+    wide[2:6, 5:7] = True                    # two nodes between
+    assert depth_step(wide, np.where(cols < 4, 0.37, 0.48), sd, 0.038, 0.05) is None
     assert depth_step(m, 0.37 + 0.6 * cols * 0.038, sd, 0.038, 0.05) is None
     one = np.zeros((8, 8), bool)
     one[2:6, 1:7] = True

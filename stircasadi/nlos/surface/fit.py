@@ -562,10 +562,10 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy)
     if step is not None:
         reasons.append(f"two surfaces side by side at different depths: nodes of two separate parts of the "
-                       f"mask {step['distance']:.3g} m apart differ by {step['dz']:.3g} m in depth (slope "
-                       f"{step['slope']:.2g}, beyond 0.7 after 3 std): one height field joins them through the "
-                       "dark nodes between, whose slopes tilt their neighbours' normals, an error the std do "
-                       "not hold; fit each surface over its own extent (SurfaceSettings.extent)")
+                       f"mask {step['distance']:.3g} m apart (two nodes or fewer) differ by {step['dz']:.3g} m "
+                       f"in depth (slope {step['slope']:.2g}, beyond 0.7 after 3 std): the node between them "
+                       "cannot take both depths, so the normals of one part tilt toward the other, an error "
+                       "the std do not hold; fit each surface over its own extent (SurfaceSettings.extent)")
     if edge.any():
         how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
                "part's shape" if model.K else "a partly covered cell is modelled as uniform")
