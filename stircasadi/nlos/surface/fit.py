@@ -334,13 +334,20 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         rl = _window(relay, grid, z, resp_hi, cell, 4.0 * slack, gate, slow_pad)
         y = rl.traces
         wgt, noise_src = noise_weights(y, rl.sigma, st.noise_sigma)
+
+        def make_model(nodes=None, grid=grid, rl=rl, sub=sub):      # the level's model
+            return SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
+                                offset_nodes=nodes)
+
+        def make_bounds(m):
+            return Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+
         if state is None:
             bg = float(np.percentile(y.mean(axis=0), 10)) if noise_src.startswith("poisson") else 0.0
             state = SurfaceState(z, rho, r0.sigma, r0.tail, tuple(b for _, b in r0.slow), bg)
             if q_dir is not None:
                 state.bgtau = max(t for t, _ in r0.slow)
-            m1 = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub,
-                              q_dir, workers).predict(state) - bg
+            m1 = make_model().predict(state) - bg
             s = float(np.sum(m1 * (y - bg)) / max(np.sum(m1 * m1), 1e-300))
             if not (s > 0):
                 raise ReconstructionError("The initial surface predicts no signal where the data have "
@@ -353,8 +360,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         else:
             state = replace(state, z=z, rho=rho)
         rl.gain = rl.gain * gain_scale
-        model = SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers)
-        bounds = Bounds(model, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+        model = make_model()
+        bounds = make_bounds(model)
         h = math.sqrt(grid.hx * grid.hy)
         lap = grid.laplacian()
         R = (lap.T @ lap).toarray() / h ** 2
@@ -409,17 +416,12 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         if last and st.edge_offsets:
             # the cells the edge cuts emit from their covered part: their centroids become
             # unknowns and the level is solved again from its solution (step 4b, ``cuts.py``)
-            def make_model(nodes):
-                return SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
-                                    offset_nodes=nodes)
-
             def solve(m, b, s0):
                 if st.solver == "lm":
                     return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, tol_chi2=st.tol_chi2)
                 return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
 
-            cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model,
-                                lambda m: Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b), solve)
+            cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve)
             if cut is not None:
                 info["cut_cells"] = cut["info"]
                 _log.info("level %d (%dx%d): %s", li, n, n, cut["info"])
@@ -457,7 +459,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         prev = grid
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
-                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes, pending)
+                   relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes, pending, bounds)
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -481,7 +483,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
 
 
 def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl, n_traces,
-            t_start, full=None, lin=None, start=None, notes=None, pending=None) -> SurfaceResult:
+            t_start, full=None, lin=None, start=None, notes=None, pending=None, bounds=None) -> SurfaceResult:
     """Fisher covariance, std maps, mask, the checks and the result (see the module docstring,
     steps 5 and 6); ``lin``: a float64 linearisation at ``state`` already made, else one is;
     ``pending``: the last level's iteration-limit messages (reason, note), a reason unless the remaining
@@ -527,7 +529,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
         if lam > 0:
             v = prior_vector(state, R.shape[0])
             gt[:R.shape[0]] += lam * (R @ v)
-        remaining = remaining_step(model, state, A, gt, mask, z_std, rho_std)
+        remaining = remaining_step(model, state, A, gt, mask, z_std, rho_std, bounds)
         worst = remaining["max_std_mask"]
         if worst is not None and worst < CONVERGED_STD:
             notes.append(f"{pending[1]}; the remaining Gauss-Newton step moves no mask node's depth or albedo by "

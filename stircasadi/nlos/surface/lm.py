@@ -79,6 +79,30 @@ def _damping(h, N):
     return np.maximum(d, 1e-12 * max(float(np.max(d)), 1e-300))
 
 
+def _free(model, st, th, H, g, bounds, dH=None, need_step: bool = True):
+    """The unknowns a Gauss-Newton step moves, and that undamped step on them. Projected
+    Newton: unknowns at a bound whose gradient pushes outward stay there; the depth of a node
+    the data do not see (albedo below 2 % of the largest, and its four neighbours' too: their
+    normals depend on it) is not moved; and unknowns at a bound that the undamped step would push
+    outward are held too (one pass of an active-set refinement: a step the bound cuts off makes
+    no progress; an offset or an albedo at its bound otherwise stalls the solve with tiny
+    projected steps). ``dH``: the damping's diagonal, 1e-10 of it regularises the step;
+    without ``need_step`` the step on the final set is not formed (None)."""
+    N = model.N
+    free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
+    free[:N] &= model.seen(st.rho)
+    fi = np.flatnonzero(free)
+    if not len(fi):
+        return fi, np.zeros(0)
+    reg = 1e-10 * (np.diag(H)[fi] if dH is None else dH[fi])
+    d0 = _solve(H[np.ix_(fi, fi)] + np.diag(reg), g[fi])
+    out = ((th[fi] <= bounds.lo[fi]) & (d0 < 0)) | ((th[fi] >= bounds.hi[fi]) & (d0 > 0))
+    if not out.any():
+        return fi, d0
+    fi = fi[~out]
+    return fi, (_solve(H[np.ix_(fi, fi)] + np.diag(reg[~out]), g[fi]) if need_step else None)
+
+
 def last_decrease(solve: dict) -> float | None:
     """2 (F before - F after) of a solve's last accepted step (``history``): the whitened chi^2
     plus the prior's penalty it removed (far above 1: the solve had not converged), or None."""
@@ -141,19 +165,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
             H[:M, :M] += lam * R_prior
             g[:M] += lam * (R_prior @ prior_vector(st, M))
         dH = _damping(np.diag(H), N)
-        # projected Newton: unknowns at a bound whose gradient pushes outward stay there
-        free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
-        # the depth of a node the data do not see (albedo below 2 % of the largest, and its four
-        # neighbours' too: their normals depend on it) is not moved
-        free[:N] &= model.seen(st.rho)
-        fi = np.flatnonzero(free)
-        # unknowns at a bound that the undamped step would push outward are held there too (one
-        # pass of an active-set refinement: a step the bound cuts off makes no progress; an
-        # offset or an albedo at its bound otherwise stalls the solve with tiny projected steps)
-        if len(fi):
-            d0 = _solve(H[np.ix_(fi, fi)] + 1e-10 * np.diag(dH[fi]), g[fi])
-            out = ((th[fi] <= bounds.lo[fi]) & (d0 < 0)) | ((th[fi] >= bounds.hi[fi]) & (d0 > 0))
-            fi = fi[~out]
+        fi, _ = _free(model, st, th, H, g, bounds, dH, need_step=False)
         Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]
         if confirm:
             # the last step was small, but a damped step is small wherever mu is large: stop
@@ -205,29 +217,20 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
                                         if bounds.at_bound(th)[2 * N + i]]}
 
 
-def remaining_step(model, state, A, g, mask, z_std, rho_std) -> dict:
-    """The undamped Gauss-Newton step from the final state (unknowns at a bound that it pushes
-    outward, and the depths LM does not move, held), in units of the std: its largest change of
-    a mask node's depth or albedo, and of any node's."""
+def remaining_step(model, state, A, g, mask, z_std, rho_std, bounds) -> dict:
+    """The undamped Gauss-Newton step from the final state on the unknowns LM would move
+    (``_free``: ``A`` the Gauss-Newton matrix with the prior, ``g`` the gradient with it), in
+    units of the std: its largest change of a mask node's depth or albedo, and of any node's."""
     N = model.N
     th = model.pack(state)
-    held = np.zeros(th.size, bool)
-    held[:N] = ~model.seen(state.rho)
-    held[N:2 * N] = (th[N:2 * N] <= 0) & (g[N:2 * N] > 0)
-    if model.K:
-        g1 = 2 * N + len(model.glob)
-        half = np.tile([0.5 * model.grid.hx, 0.5 * model.grid.hy], model.K) * (1 - 1e-9)
-        o, go = th[g1:], g[g1:]
-        held[g1:] = ((o >= half) & (go < 0)) | ((o <= -half) & (go > 0))
-    fi = np.flatnonzero(~held)
+    fi, step = _free(model, state, th, A, g, bounds)
     d = np.zeros(th.size)
-    d[fi] = -np.linalg.solve(A[np.ix_(fi, fi)], g[fi])
+    d[fi] = step
     rz = np.abs(d[:N]) / np.maximum(z_std, 1e-300)
     rr = np.abs(d[N:2 * N]) / np.maximum(rho_std, 1e-300)
     both = np.maximum(rz, rr)
     return {"max_std_mask": float(both[mask].max()) if mask.any() else None,
-            "max_std_any": float(np.max(np.where(held[:N], rr, both))),
-            "decrease_2F": float(-g[fi] @ d[fi])}
+            "max_std_any": float(both.max()), "decrease_2F": float(-g[fi] @ step)}
 
 
 #: the largest change of a mask node's depth or albedo, in std, that the remaining Gauss-Newton
