@@ -87,7 +87,7 @@ def json_dict(est) -> dict:
         rem = s.extras.get("remaining_step")
         worst = None if rem is None else rem.get("max_std_mask")
         solved = bool(s.levels[-1]["success"]) if s.levels else False
-        checks.append({"name": "solver", "passed": solved or (worst is not None and worst < CONVERGED_STD),
+        checks.append({"name": "solver", "passed": solved or bool(rem and rem.get("converged")),
                        "value": worst, "limit": None if rem is None else CONVERGED_STD,
                        "message": "; ".join(f"level {i}{' (coarse: starts the next)' if i < len(s.levels) - 1 else ''}: "
                                             f"{l['status']}" for i, l in enumerate(s.levels))

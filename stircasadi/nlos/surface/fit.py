@@ -88,7 +88,7 @@ from ..volume import Maps
 from .grid import DepthGrid, normal_std
 from .prior import GCV_PROBES, _choose_lambda  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4b's test level, read here)
-from .lm import CONVERGED_STD, Bounds, last_decrease, prior_vector, remaining_step, solve_lm
+from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
 from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
@@ -431,13 +431,11 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     gain_chi2 = (float(chi2_0) - chi2) / infl
     remaining = None
     if pending is not None:
-        gt = np.array(lin["g"], float)
-        if lam > 0:
-            v = prior_vector(state, R.shape[0])
-            gt[:R.shape[0]] += lam * (R @ v)
+        gt = prior_gradient(lin["g"], state, lam, R)
         remaining = remaining_step(model, state, A, gt, mask, z_std, rho_std, bounds)
         worst = remaining["max_std_mask"]
-        if worst is not None and worst < CONVERGED_STD:
+        remaining["converged"] = worst is not None and worst < CONVERGED_STD
+        if remaining["converged"]:
             notes.append(f"{pending[1]}; the remaining Gauss-Newton step moves no mask node's depth or albedo by "
                          f"more than {worst:.2g} of its std (nodes outside the mask up to {remaining['max_std_any']:.3g}): "
                          "the surface's numbers are converged")
@@ -471,7 +469,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     if step is not None:
         reasons.append(f"two surfaces side by side at different depths: nodes of two separate parts of the "
                        f"mask {step['distance']:.3g} m apart (two nodes or fewer) differ by {step['dz']:.3g} m "
-                       f"in depth (slope {step['slope']:.2g}, beyond 0.7 after 3 std): the node between them "
+                       f"in depth (slope {step['slope']:.2g}, beyond {step['limit']:g} after 3 std): the node between them "
                        "cannot take both depths, so the normals of one part tilt toward the other, an error "
                        "the std do not hold; fit each surface over its own extent (SurfaceSettings.extent)")
     if edge.any():
@@ -512,7 +510,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "remaining_step": remaining,
                 # the cut cells' fitted centroid offsets (step 4b): node indices, (K, 2) metres
                 "cell_offsets": {"nodes": model.onodes.tolist(),
-                                 "offset_m": model._off(state).tolist()} if model.K else None,
+                                 "offset_m": model.centroid_offsets(state).tolist()} if model.K else None,
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": float(st.albedo_prior),
                 # what the coarse levels could not do (not reasons: the last level decides)

@@ -116,6 +116,16 @@ def prior_vector(st: SurfaceState, M: int) -> np.ndarray:
     return st.z if M == len(st.z) else np.concatenate([st.z, st.rho])
 
 
+def prior_gradient(g: np.ndarray, st: SurfaceState, lam: float, R_prior) -> np.ndarray:
+    """A copy of the data's gradient ``g`` (of chi^2 / 2) with the prior's, lam R v, added on the
+    unknowns it acts on (``prior_vector``)."""
+    g = np.array(g, float)
+    if lam > 0:
+        M = R_prior.shape[0]
+        g[:M] += lam * (R_prior @ prior_vector(st, M))
+    return g
+
+
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None,
              tol_chi2: float = 0.0) -> dict:
@@ -160,10 +170,9 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
         # (``lin0``: the caller's linearisation at the starting state, reused by the first step)
         lin = lin0 if (it == 1 and lin0 is not None) else model.linearise(st, y, wgt, dtype=dtype)
         f = 0.5 * lin["chi2"] + pen(st)
-        H, g = lin["H"], lin["g"].copy()
+        H, g = lin["H"], prior_gradient(lin["g"], st, lam, R_prior)
         if prior:
             H[:M, :M] += lam * R_prior
-            g[:M] += lam * (R_prior @ prior_vector(st, M))
         dH = _damping(np.diag(H), N)
         fi, _ = _free(model, st, th, H, g, bounds, dH, need_step=False)
         Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]

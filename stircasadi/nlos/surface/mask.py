@@ -137,5 +137,5 @@ def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy
                 j = (k[0] + y0 + dy) * nx + (k[1] + x0 + dx)
                 dz = float(abs(z[a][k] - z[b][k]))
                 best = {"nodes": [int(i), int(j)], "distance": d, "dz": dz, "slope": dz / d,
-                        "excess": float(excess[k])}
+                        "limit": slope, "excess": float(excess[k])}
     return best

@@ -200,9 +200,9 @@ class SurfaceModel:
         return float(st.betas[int(name[4:])]) if name.startswith("beta") else float(getattr(st, name))
 
     def pack(self, st: SurfaceState) -> np.ndarray:
-        return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob], self._off(st).ravel()])
+        return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob], self.centroid_offsets(st).ravel()])
 
-    def _off(self, st: SurfaceState) -> np.ndarray:
+    def centroid_offsets(self, st: SurfaceState) -> np.ndarray:
         """The state's (K, 2) centroid offsets (zeros where it holds none)."""
         if st.off is None or self.K == 0:
             return np.zeros((self.K, 2))
@@ -406,7 +406,7 @@ class SurfaceModel:
         centroid offsets, zero but at ``onodes``)."""
         ox, oy = np.zeros(self.N), np.zeros(self.N)
         if self.K and st is not None:
-            off = self._off(st)
+            off = self.centroid_offsets(st)
             ox[self.onodes], oy[self.onodes] = off[:, 0], off[:, 1]
         return [z] + [o @ z for o in self.ops[1:]] + [ox, oy]
 
