@@ -78,6 +78,8 @@ def run_one(seed: int, nodes: int, levels: int, prior) -> dict:
             "success": bool(res.success), "chi2_dof": float(res.chi2_dof), "dof": int(res.dof),
             "reasons": list(res.reasons),
             "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
+            "pruned": (res.levels[-1].get("pruned") or {}).get("nodes", 0) if (res.levels[-1].get("pruned") or {}).get("kept") else 0,
+            "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
             "verdict": verdict(bool(res.success), sc), **sc}
 
 

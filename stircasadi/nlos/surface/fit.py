@@ -88,6 +88,7 @@ from ..volume import Maps
 from .grid import DepthGrid, normal_std
 from .prior import GCV_PROBES, _choose_lambda  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4b's test level, read here)
+from .prune import prune_nodes
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
 from .direct import direct_return
 from .explained import explained_returns
@@ -245,8 +246,23 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             return SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
                                 offset_nodes=nodes)
 
+        held = {"pruned": np.zeros(grid.n, bool)}       # step 4a's nodes, albedo held at zero
+
         def make_bounds(m):
-            return Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+            b = Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
+            b.hi[m.N:2 * m.N][held["pruned"]] = 0.0
+            return b
+
+        def solve(m, b, s0):                                     # the level's solver
+            if st.solver == "lm":
+                return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, tol_chi2=st.tol_chi2)
+            return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
+
+        def record(res, **more):
+            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound", "history")
+                                   if k in res}
+                                  | {"lam": lam, "sigma": res["state"].sigma, "tail": res["state"].tail,
+                                     "betas": list(res["state"].betas)} | more)
 
         if state is None:
             bg = float(np.percentile(y.mean(axis=0), 10)) if noise_src.startswith("poisson") else 0.0
@@ -290,10 +306,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             else:
                 res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
             state = res["state"]
-            info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound", "history")
-                                   if k in res}
-                                  | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
-                                     "betas": list(state.betas)})
+            record(res)
             _log.info("level %d (%dx%d) solve: %s, %d it, f=%.6g, lam=%.3g, sigma=%.4g, tail=%.4g",
                       li, n, n, res["status"], res["iterations"], res["f"], lam, state.sigma, state.tail)
             if not auto:
@@ -319,14 +332,23 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 lam = new_lam
                 continue
             break
+        if last and st.prune:
+            # nodes off the surface whose albedos fit noise: pruned and the level solved again
+            # from its solution, kept by a likelihood-ratio test (step 4a, ``prune.py``)
+            lin_p = lin if lin is not None else model.linearise(state, y, wgt, dtype=dtype)
+            pr = prune_nodes(state, res, lin_p, y, wgt, model, lambda m: held.__setitem__("pruned", m),
+                             make_bounds, solve)
+            if pr is not None:
+                info["pruned"] = pr["info"]
+                _log.info("level %d (%dx%d): pruned %s", li, n, n, pr["info"])
+                bounds = pr["bounds"]
+                if pr["info"]["kept"]:
+                    res, lin = pr["res"], None
+                    state = res["state"]
+                    record(res, pruned=int(pr["info"]["nodes"]))
         if last and st.edge_offsets:
             # the cells the edge cuts emit from their covered part: their centroids become
             # unknowns and the level is solved again from its solution (step 4b, ``cuts.py``)
-            def solve(m, b, s0):
-                if st.solver == "lm":
-                    return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, tol_chi2=st.tol_chi2)
-                return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
-
             cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve)
             if cut is not None:
                 info["cut_cells"] = cut["info"]
@@ -334,10 +356,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 if cut["info"]["kept"]:
                     model, bounds, res, lin = cut["model"], cut["bounds"], cut["res"], None
                     state = res["state"]
-                    info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f",
-                                                               "at_bound", "history") if k in res}
-                                          | {"lam": lam, "sigma": state.sigma, "tail": state.tail,
-                                             "betas": list(state.betas), "offset_nodes": int(model.K)})
+                    record(res, offset_nodes=int(model.K))
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)

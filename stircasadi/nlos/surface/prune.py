@@ -1,0 +1,85 @@
+"""Nodes the data give no evidence of: step 4a of ``fit.py``.
+
+When to use: called by ``fit_surface`` after its last level's solve (``SurfaceSettings.prune``);
+nothing else needs it.
+
+The grid spans the initialiser's support grown by a margin, so most of its nodes lie off the
+surface. Their albedos fit noise (specks of a few per cent up to the bound 1 at depths whose
+returns barely reach the window), their depths are barely determined, and every LM step moves
+them by the slack far into the response's nonlinear range: on held-out study scenes the steps
+then lowered chi^2 by 0.05-0.4 of what their quadratic model predicted, and LM crawled to its
+iteration limit with the surface itself still 0.5-1.6 std from its optimum (measured on seed
+604: the grid's 127 off-surface nodes each explained chi^2 0-24, the 17 surface nodes 290-950).
+
+The evidence of node i is the rise of chi^2 when its albedo is set to zero with every other
+unknown held, e_i = rho_i^2 H_ii - 2 rho_i g_i (exact: the model is linear in the albedos), an
+upper bound on the rise after the others are refitted. Nodes with e_i below the chi^2 quantile of
+2 degrees of freedom at p = ``PRUNE_P`` / N (Bonferroni over the N nodes; the statistic divided
+by the inflation max(1, chi2/dof)) get albedo 0, held there (their depth too where no neighbour
+is lit: ``SurfaceModel.seen``), the level is solved again from its solution, and the pruned model
+is kept unless the likelihood ratio of the two nested models exceeds the chi^2 quantile of the
+unknowns removed at p = ``PRUNE_P`` (the pruned nodes then explain signal jointly: the full
+model stands). The ratio uses the full model's solve as it stopped; where that solve had not
+converged its chi^2 is above its optimum and the ratio is too small by the decrease left (the
+remaining step's, a few units on the study's scenes, against thresholds of ~100-300).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.stats import chi2 as _chi2_dist
+
+__all__ = ["PRUNE_P", "node_evidence", "prune_nodes"]
+
+#: false-alarm probability of the pruning tests: a node is pruned when its evidence is below
+#: the chi^2(2) quantile at PRUNE_P / N, and the pruned model is kept when the nodes together
+#: do not explain more than chance would at PRUNE_P
+PRUNE_P = 0.01
+
+
+def node_evidence(rho: np.ndarray, g: np.ndarray, h_diag: np.ndarray) -> np.ndarray:
+    """The rise of chi^2 when each node's albedo alone is set to zero, rho^2 H_ii - 2 rho g_i
+    (``g``, ``h_diag``: the albedos' entries of the gradient of chi^2 / 2 and of J^T W J)."""
+    rho = np.asarray(rho, float)
+    return np.maximum(rho * rho * np.asarray(h_diag, float) - 2.0 * rho * np.asarray(g, float), 0.0)
+
+
+def prune_nodes(state, res: dict, lin: dict, y, wgt, model, set_pruned, make_bounds, solve) -> dict | None:
+    """The level solved again with the nodes of no evidence pruned, from ``state`` (the solution
+    ``res`` of the level's own solve; ``lin``: ``model.linearise`` there, with H).
+    ``set_pruned(mask)``: makes ``make_bounds`` hold those nodes' albedos at zero;
+    ``solve(model, bounds, state)``: the level's solver.
+
+    Returns None (no node to prune), or a dict: ``info`` (``nodes`` pruned, ``lit`` of them with
+    an albedo above zero, the likelihood ratio ``lr``, its ``threshold`` at ``p``, ``kept``, the
+    per-node ``node_threshold``, the solve's ``status`` and ``iterations``), the solve's ``res``
+    and ``bounds``, and ``mask`` (the pruned nodes; all False when not kept)."""
+    N = model.N
+    n_y = int(np.size(y))
+    infl = max(1.0, float(lin["chi2"]) / max(n_y - model.npar, 1))
+    H, g = lin["H"], lin["g"]
+    ev = node_evidence(state.rho, g[N:2 * N], np.diag(H)[N:2 * N]) / infl
+    node_thr = float(_chi2_dist.isf(PRUNE_P / N, 2))
+    cut = ev < node_thr
+    seen0 = model.seen(state.rho)
+    if not cut.any() or cut.all():
+        return None
+    rho = np.where(cut, 0.0, state.rho)
+    s0 = replace(state, rho=rho)
+    # the unknowns removed: the lit pruned nodes' albedos and the depths no longer seen
+    removed = int(np.sum(cut & (state.rho > 0))) + int(np.sum(seen0 & ~model.seen(rho)))
+    set_pruned(cut)
+    bounds = make_bounds(model)
+    out = solve(model, bounds, s0)
+    chi2 = float(model.objective(out["state"], y, wgt)[0])
+    lr = 2.0 * (float(out["f"]) - float(res["f"])) / max(1.0, chi2 / max(n_y - model.npar, 1))
+    need = float(_chi2_dist.isf(PRUNE_P, max(removed, 1)))
+    kept = bool(lr <= need)
+    if not kept:
+        set_pruned(np.zeros(N, bool))
+    info = {"nodes": int(cut.sum()), "lit": int(np.sum(cut & (state.rho > 0))), "removed_unknowns": removed,
+            "lr": lr, "threshold": need, "p": PRUNE_P, "node_threshold": node_thr, "kept": kept,
+            "evidence_max_pruned": float(ev[cut].max()), "status": out["status"], "iterations": out["iterations"]}
+    return {"info": info, "res": out, "bounds": bounds if kept else make_bounds(model),
+            "mask": cut if kept else np.zeros(N, bool)}
