@@ -33,7 +33,7 @@ Steps
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
    4a. Pruning (``SurfaceSettings.prune``, ``prune.py``): nodes whose albedo explains less of
    the data than noise would (each node's chi^2 rise without it, exact since the model is
-   linear in the albedos, below the chi^2(2) quantile at p = 0.01 / N) get albedo zero, held,
+   linear in the albedos, below the chi^2(2) quantile at p = 0.01) get albedo zero, held,
    and the last level is solved again from its solution, kept by a likelihood-ratio test
    (``levels[-1]["pruned"]``). Off-surface nodes that fit noise with barely determined depths
    had kept LM's steps in the response's nonlinear range (actual decrease 0.05-0.4 of the
@@ -84,7 +84,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
+from scipy.ndimage import binary_dilation, uniform_filter1d
 from scipy.stats import chi2 as _chi2_dist
 
 from ...errors import ReconstructionError
@@ -491,6 +491,12 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
+    # pruned nodes (step 4a) beside the mask: their albedo is held at zero, a model choice and
+    # not an estimate (neighbouring albedos trade; one may have sat near zero at the first
+    # solve), so their numbers are marked with the edge's, not claimed
+    held = (bounds.hi[N:2 * N] <= 0.0).reshape(shape) if bounds is not None else np.zeros(shape, bool)
+    held_edge = held & binary_dilation(mask.reshape(shape), structure=np.ones((3, 3), bool))
+    edge = edge | held_edge
     step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy)
     if step is not None:
         reasons.append(f"two surfaces side by side at different depths: nodes of two separate parts of the "
@@ -501,9 +507,13 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     if edge.any():
         how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
                "part's shape" if model.K else "a partly covered cell is modelled as uniform")
-        notes.append(f"{int(edge.sum())} of the {int(mask.sum())} mask nodes lie at the surface's edge "
-                     "(SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
+        notes.append(f"{int((edge & mask.reshape(shape)).sum())} of the {int(mask.sum())} mask nodes lie at the "
+                     "surface's edge (SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
                      f"the noise only, not the error of the edge's model ({how})")
+    if held_edge.any():
+        notes.append(f"{int(held_edge.sum())} pruned node(s) beside the mask (albedo held at zero: no evidence of "
+                     "their own, step 4a) are marked in SurfaceResult.edge too: their albedo is a model choice, "
+                     "not an estimate, and their std do not hold its error")
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
                        "residual; std inflated by sqrt(chi2/dof))")

@@ -62,7 +62,7 @@ class SurfaceSettings:
     #: last level is solved again with them; False: every cell emits from its node
     edge_offsets: bool = True
     #: nodes whose albedo explains less of the data than noise would (``prune.py``: each node's
-    #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01 / N) get albedo zero and the
+    #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01) get albedo zero and the
     #: last level is solved again, kept by a likelihood-ratio test; False: every node stays free
     prune: bool = True
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
