@@ -72,6 +72,20 @@ def _fit_and_prune(model, y, wgt, st0, worse: float = 0.0):
     return res, out, held["m"]
 
 
+def _three_lit():
+    """The small model with nodes 4, 5, 7 lit (albedo 0.8), the others dark, at 0.1 % noise:
+    (model, lit, depths, data, weights)."""
+    rng = np.random.default_rng(11)
+    model = _small(rng)
+    lit = np.zeros(model.N, bool)
+    lit[[4, 5, 7]] = True
+    z = 0.4 + 0.01 * rng.standard_normal(model.N)
+    clean = model.predict(SurfaceState(z, np.where(lit, 0.8, 0.0), 0.006, 0.0, (), 0.0))
+    sig = 1e-3 * clean.max()
+    y = clean + sig * rng.standard_normal(clean.shape)
+    return model, lit, z, y, np.full(y.shape, 1.0 / sig ** 2)
+
+
 def test_nodes_off_the_surface_are_pruned_and_the_surface_stays():
     """Three lit nodes (albedo 0.8) and nine of zero albedo, 0.1 % noise: fitted from albedos
     0.05 on the dark nodes, the dark nodes fit noise; every one of them whose fitted albedo
@@ -80,17 +94,8 @@ def test_nodes_off_the_surface_are_pruned_and_the_surface_stays():
     the threshold of the unknowns removed) and its solve ends with the pruned albedos at zero and
     the lit ones within 3 std of the truth (measured: nine pruned, five of them lit, the largest
     evidence 5.4; likelihood ratio 11.6 against the chi^2(5) quantile 15.1)."""
-    rng = np.random.default_rng(11)
-    model = _small(rng)
+    model, lit, z, y, wgt = _three_lit()
     N = model.N
-    lit = np.zeros(N, bool)
-    lit[[4, 5, 7]] = True
-    z = 0.4 + 0.01 * rng.standard_normal(N)
-    truth = SurfaceState(z, np.where(lit, 0.8, 0.0), 0.006, 0.0, (), 0.0)
-    clean = model.predict(truth)
-    sig = 1e-3 * clean.max()
-    y = clean + sig * rng.standard_normal(clean.shape)
-    wgt = np.full(y.shape, 1.0 / sig ** 2)
     res, out, held = _fit_and_prune(model, y, wgt, SurfaceState(z.copy(), np.where(lit, 0.7, 0.05), 0.006, 0.0, (), 0.0))
     info = out["info"]
     assert info["kept"] and info["lr"] <= info["threshold"] and info["p"] == PRUNE_P
@@ -110,16 +115,8 @@ def test_the_full_model_stands_when_the_pruned_one_fits_worse_than_chance_allows
     the likelihood ratio, 100 over the inflation, exceeds the chi^2 quantile of the unknowns
     removed at p = 0.01, so the pruned model is not kept, the hold is released and the bounds
     returned free again."""
-    rng = np.random.default_rng(11)
-    model = _small(rng)
+    model, lit, z, y, wgt = _three_lit()
     N = model.N
-    lit = np.zeros(N, bool)
-    lit[[4, 5, 7]] = True
-    z = 0.4 + 0.01 * rng.standard_normal(N)
-    clean = model.predict(SurfaceState(z, np.where(lit, 0.8, 0.0), 0.006, 0.0, (), 0.0))
-    sig = 1e-3 * clean.max()
-    y = clean + sig * rng.standard_normal(clean.shape)
-    wgt = np.full(y.shape, 1.0 / sig ** 2)
     res, out, held = _fit_and_prune(model, y, wgt, SurfaceState(z.copy(), np.where(lit, 0.7, 0.05), 0.006, 0.0, (), 0.0),
                                     worse=50.0)
     info = out["info"]
