@@ -33,8 +33,8 @@ from scipy.stats import chi2 as _chi2_dist
 __all__ = ["PRUNE_P", "node_evidence", "prune_nodes"]
 
 #: level of the pruning tests: a node is pruned when its evidence is below the chi^2(2) quantile
-#: at PRUNE_P (a node fitting noise alone passes it with probability 0.99; not Bonferroni-divided
-#: over the nodes: a threshold of ~19 on a 12 x 12 grid also pruned surface nodes near 3 std),
+#: at PRUNE_P (a node that only fits noise falls below it with probability 0.99; not divided
+#: over the nodes: Bonferroni's ~19 on a 12 x 12 grid would prune nodes 3-4.4 std on their own),
 #: and the pruned model is kept when the nodes together do not explain more than chance would at
 #: PRUNE_P
 PRUNE_P = 0.01
