@@ -260,9 +260,10 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             b.hi[m.N:2 * m.N][held["pruned"]] = 0.0
             return b
 
-        def solve(m, b, s0):                                     # the level's solver
+        def solve(m, b, s0, lin0=None):        # the level's solver (``lin0``: LM's first linearisation)
             if st.solver == "lm":
-                return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, tol_chi2=st.tol_chi2)
+                return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, lin0=lin0,
+                                tol_chi2=st.tol_chi2)
             return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
 
         def record(res, **more):
@@ -306,12 +307,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         auto = st.prior in ("auto", "gcv")
         lin = None
         for rep in range(2 if (auto and last) else 1):
-            if st.solver == "lm":
-                # a re-solve starts where the weight was chosen: that linearisation is its first step's
-                res = solve_lm(model, y, wgt, state, lam, R, bounds, slack, st.max_iter, st.tol, dtype,
-                               lin0=lin if rep else None, tol_chi2=st.tol_chi2)
-            else:
-                res = solve_level(model, y, wgt, state, lam, R, bounds, st.max_iter, st.tol)
+            # a re-solve starts where the weight was chosen: that linearisation is its first step's
+            res = solve(model, bounds, state, lin0=lin if rep else None)
             state = res["state"]
             record(res)
             _log.info("level %d (%dx%d) solve: %s, %d it, f=%.6g, lam=%.3g, sigma=%.4g, tail=%.4g",
