@@ -3,12 +3,14 @@ Jacobian against finite differences, a tilted-plane twin with error bars, and th
 estimate_capture -> estimate.json / files."""
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from nlos_twins import WALL_RHO, confocal_capture, render, surface_patches
 from stircasadi.brdf import Lambertian
+from stircasadi.errors import ReconstructionError
 from stircasadi.irf import GaussianIRF
 from stircasadi.nlos import VolumeSettings, estimate_capture, from_capture, lct
 from stircasadi.nlos.surface import SurfaceSettings, fit_surface
@@ -286,6 +288,46 @@ def test_threads_over_trace_chunks_give_the_same_numbers_bit_for_bit(slow):
     assert l1["chi2"] == l3["chi2"] and np.array_equal(l1["g"], l3["g"]) and np.array_equal(l1["H"], l3["H"])
     assert np.allclose(pa, p1, rtol=1e-13, atol=0) and l1["chi2"] == pytest.approx(la["chi2"], rel=1e-12)
     assert np.allclose(l1["H"], la["H"], rtol=1e-10, atol=1e-13 * np.abs(la["H"]).max())
+
+
+def test_held_zero_albedos_are_skipped_without_changing_any_other_entry():
+    """Nodes of albedo zero: ``predict`` forms no pairs for them (their deposits are exact zeros)
+    and equals the linearisation's own model, which forms them; ``linearise(skip=...)`` over held
+    nodes gives the full linearisation's chi^2, model, gradient and Gauss-Newton matrix in every
+    entry but the held albedos' (zero there: the solver holds them), with slow tails and without;
+    a skipped node with a non-zero albedo is refused."""
+    from stircasadi.nlos.relay import Relay
+    from stircasadi.nlos.surface.model import SurfaceState
+    from stircasadi.nlos.surface.response import Response
+    rng = np.random.default_rng(5)
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    grid = DepthGrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.1, 0.1, 4), frame)
+    P, N = 7, grid.n
+    L = np.c_[rng.uniform(-0.2, 0.2, (P, 2)), np.zeros(P)]
+    n = np.tile([0, 0, 1.0], (P, 1))
+    rl = Relay(np.zeros((P, 150)), TimeGrid(0.6, 0.004, 150), L, L, n, n, 0.0, 1.0)
+    held = np.zeros(N, bool)
+    held[[0, 3, 4, 9, 17]] = True
+    for slow in ((), ((0.03, 0.3),)):
+        resp = Response("emg", 0.006, 0.01, slow)
+        rho = np.where(held, 0.0, rng.uniform(0.3, 1, N))
+        st = SurfaceState(0.4 + 0.02 * rng.standard_normal(N), rho, 0.006, 0.01, tuple(b for _, b in slow), 0.01)
+        model = SurfaceModel(grid, rl, resp, "lambertian", subsamples=2)
+        y = model.predict(st) + 1e-3 * rng.standard_normal((P, 150))
+        wgt = rng.uniform(0.5, 2, (P, 150))
+        full = model.linearise(st, y, wgt, dtype=np.float64)
+        part = model.linearise(st, y, wgt, dtype=np.float64, skip=held)
+        keep = np.ones(model.npar, bool)
+        keep[N:2 * N][held] = False
+        assert np.abs(full["H"][N:2 * N][held]).max() > 0          # the full one has them
+        assert np.allclose(model.predict(st), full["m"], rtol=1e-12, atol=1e-15 * np.abs(full["m"]).max())
+        assert np.allclose(part["m"], full["m"], rtol=1e-12, atol=0) and part["chi2"] == pytest.approx(full["chi2"], rel=1e-12)
+        assert np.allclose(part["g"][keep], full["g"][keep], rtol=1e-10, atol=1e-12 * np.abs(full["g"]).max())
+        Hk, Hf = part["H"][np.ix_(keep, keep)], full["H"][np.ix_(keep, keep)]
+        assert np.allclose(Hk, Hf, rtol=1e-10, atol=1e-12 * np.abs(Hf).max())
+        assert not part["H"][~keep].any() and not part["g"][~keep].any()
+    with pytest.raises(ReconstructionError, match="skipped node"):
+        model.linearise(replace(st, rho=np.ones(N)), y, wgt, skip=held)
 
 
 def test_pair_windows_longer_than_the_record_are_cut_exactly():

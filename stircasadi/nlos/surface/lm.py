@@ -68,14 +68,16 @@ def _solve(A, b):
         return -np.linalg.lstsq(A, b, rcond=None)[0]
 
 
-def _damping(h, N):
+def _damping(h, N, held=None):
     """Marquardt's diag(H), floored per block (depths, albedos, globals) at 1e-4 of the block's
-    median so that unknowns the data hardly see (depths under a zero albedo) stay damped."""
+    median so that unknowns the data hardly see (depths under a zero albedo) stay damped
+    (``held``: the albedos held at zero, not linearised, left out of their block's median)."""
     d = np.array(h, float)
     for sl in (slice(0, N), slice(N, 2 * N)):
         blk = d[sl]
+        ref = blk[~held] if (held is not None and sl.start == N and (~held).any()) else blk
         if blk.size:
-            d[sl] = np.maximum(blk, 1e-4 * max(float(np.median(blk)), 1e-300))
+            d[sl] = np.maximum(blk, 1e-4 * max(float(np.median(ref)), 1e-300))
     return np.maximum(d, 1e-12 * max(float(np.max(d)), 1e-300))
 
 
@@ -89,7 +91,7 @@ def _free(model, st, th, H, g, bounds, dH=None, need_step: bool = True):
     projected steps). ``dH``: the damping's diagonal, 1e-10 of it regularises the step;
     without ``need_step`` the step on the final set is not formed (None)."""
     N = model.N
-    free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)))
+    free = ~(((th <= bounds.lo) & (g > 0)) | ((th >= bounds.hi) & (g < 0)) | (bounds.lo >= bounds.hi))
     free[:N] &= model.seen(st.rho)
     fi = np.flatnonzero(free)
     if not len(fi):
@@ -161,6 +163,9 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
 
     th = bounds.project(model.pack(st))
     st = model.unpack(th, st)
+    # albedos held at zero (``Bounds`` hi = 0: pruned nodes): their pairs are not linearised
+    held = bounds.hi[N:2 * N] <= 0.0
+    skip = held if held.any() else None
     mu = 1e-3
     status, it, f = "Maximum_Iterations_Exceeded", 0, None
     dof = max(int(np.size(y)) - model.npar, 1)
@@ -168,12 +173,12 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
     confirm = False
     for it in range(1, max_iter + 1):
         # (``lin0``: the caller's linearisation at the starting state, reused by the first step)
-        lin = lin0 if (it == 1 and lin0 is not None) else model.linearise(st, y, wgt, dtype=dtype)
+        lin = lin0 if (it == 1 and lin0 is not None) else model.linearise(st, y, wgt, dtype=dtype, skip=skip)
         f = 0.5 * lin["chi2"] + pen(st)
         H, g = lin["H"], prior_gradient(lin["g"], st, lam, R_prior)
         if prior:
             H[:M, :M] += lam * R_prior
-        dH = _damping(np.diag(H), N)
+        dH = _damping(np.diag(H), N, skip)
         fi, _ = _free(model, st, th, H, g, bounds, dH, need_step=False)
         Hf, gf, dHf = H[np.ix_(fi, fi)], g[fi], dH[fi]
         if confirm:

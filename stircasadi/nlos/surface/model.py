@@ -29,7 +29,8 @@ along the Jacobian's time axis as one recursion for all tails. The
 Gauss-Newton matrix is a sum of per-chunk products J^T W J (BLAS; float32 for the solver's
 steps, float64 for the Fisher covariance); without slow tails, rows that no pair reaches only
 carry the background; with them, Phi is applied to the chunk's columns along time.
-Memory is bounded by ``chunk_bytes`` whatever the number of traces.
+Memory is bounded by ``chunk_bytes`` whatever the number of traces (a prediction's chunks by
+``PREDICT_CHUNK_BYTES`` too).
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ import scipy.sparse as sp
 
 from ...errors import ReconstructionError
 from ..relay import Relay
+from .chunks import run_chunks
 from .grid import DepthGrid
 from .physics import BRDFS, cell_variance, footprint_variance, relay_amplitude, relay_delay
 from .response import Response
@@ -53,6 +55,11 @@ __all__ = ["SurfaceModel", "SurfaceState"]
 #: later model uses the virtual machine without trying again), and the compiled functions by
 #: their serialised form (the models of one fit, and its levels' first predictions, share them)
 _JIT = {"dir": None, "unavailable": False, "done": {}}
+
+#: the largest chunk of a prediction (bytes): its ragged window arrays stay in the cache (32 x 32
+#: nodes, the resolution chart's 256 traces, 2 threads: 2.14 s a prediction in chunks of 192 MiB,
+#: most of it page faults and memory traffic; 0.52 s at 12 MiB, 0.71 s at 24; the same numbers)
+PREDICT_CHUNK_BYTES = 12 * 2 ** 20
 
 
 def _compiled(f: ca.Function) -> ca.Function:
@@ -329,7 +336,8 @@ class SurfaceModel:
         return vals, out[:, 3:].reshape(nt * N, S, 8, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
     # ------------------------------------------------------------------ response windows
-    def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool):
+    def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool,
+                 active: np.ndarray | None = None):
         """The bins each pair reaches (shared by its sub-samples), ragged: each pair p gets its
         own window of n_p bins, from its earliest sub-sample delay plus the core's left support
         to its latest plus the right support at the pair's own widest sub-sample, cut to the
@@ -339,7 +347,8 @@ class SurfaceModel:
         Returns a dict: ``pe`` (E,) the pair of each window bin, ``kk`` (E,) its bin index,
         ``s`` (K, S) the per-sample widths, ``B`` (E, S) the core's bin integrals and, with
         ``need_parts``, ``dF`` / ``dF1`` [/ ``dFt``] (E, S): the bin differences of f, f'
-        [and dF/dtail] (their edge values differenced over each bin)."""
+        [and dF/dtail] (their edge values differenced over each bin). ``active`` (N,): the
+        nodes whose pairs get windows (the others none: their bins drop out of every sum)."""
         s = np.sqrt(st.sigma ** 2 + c2)
         K = tau.shape[0]
         w = self.w
@@ -350,6 +359,8 @@ class SurfaceModel:
         a = np.clip(k0, 0, self.T)
         b = np.clip(k0 + n, 0, self.T)
         n = b - a                                        # bins of each pair inside the record
+        if active is not None:
+            n = np.where(np.tile(active, K // self.N), n, 0)
         ne = np.where(n > 0, n + 1, 0)                   # edges of each pair's window
         eo = np.concatenate([[0], np.cumsum(ne)])
         E_edge = int(eo[-1])
@@ -371,34 +382,15 @@ class SurfaceModel:
             out[key] = arr[left + 1] - arr[left]
         return out
 
-    def _chunks(self, per_trace_bytes: int):
-        nt = max(1, int(self.chunk_bytes // max(per_trace_bytes, 1)))
+    def _chunks(self, per_trace_bytes: int, cap: int | None = None):
+        size = self.chunk_bytes if cap is None else min(self.chunk_bytes, cap)
+        nt = max(1, int(size // max(per_trace_bytes, 1)))
         for t0 in range(0, self.P, nt):
             yield t0, min(t0 + nt, self.P)
 
-    def _each_chunk(self, fn, per_trace_bytes: int):
-        """``fn(t0, t1)`` over the trace chunks, results yielded in chunk order: on
-        ``self.workers`` threads (at most two chunks per thread submitted and not yet consumed,
-        which bounds the memory of results waiting for their turn), else serially."""
-        chunks = list(self._chunks(per_trace_bytes))
-        if self.workers == 1 or len(chunks) == 1:
-            for c in chunks:
-                yield fn(*c)
-            return
-        from collections import deque
-        from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="surface-chunk") as ex:
-            todo, running = iter(chunks), deque()
-            for c in todo:
-                running.append(ex.submit(fn, *c))
-                if len(running) >= 2 * self.workers:
-                    break
-            while running:
-                out = running.popleft().result()
-                nxt = next(todo, None)
-                if nxt is not None:
-                    running.append(ex.submit(fn, *nxt))
-                yield out
+    def _each_chunk(self, fn, per_trace_bytes: int, cap: int | None = None):
+        """``fn(t0, t1)`` over the trace chunks on ``self.workers`` threads (``chunks.py``)."""
+        return run_chunks(fn, list(self._chunks(per_trace_bytes, cap)), self.workers)
 
     # ------------------------------------------------------------------ evaluation
     def _local(self, z, st: SurfaceState | None = None):
@@ -413,7 +405,8 @@ class SurfaceModel:
     def _core(self, st, resp, t0, t1, loc):
         """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
         G, _ = self._geometry(t0, t1, loc, False)
-        win = self._windows(st, resp, G[..., 1], G[..., 2], False, False)
+        # a node of albedo zero deposits exact zeros: its pairs get no window
+        win = self._windows(st, resp, G[..., 1], G[..., 2], False, False, st.rho != 0)
         pe = win["pe"]
         val = np.einsum("es,es->e", G[..., 0][pe], win["B"]) * np.tile(st.rho, t1 - t0)[pe]
         nt = t1 - t0
@@ -430,7 +423,7 @@ class SurfaceModel:
             G = self._core(st, resp, t0, t1, loc)
             out[t0:t1] = self.background(st, t0, t1)[0] + resp.tail_filter(G, self.w)
 
-        for _ in self._each_chunk(one, self.N * S * 8 * 64):
+        for _ in self._each_chunk(one, self.N * S * 8 * 64, cap=PREDICT_CHUNK_BYTES):
             pass
         return out
 
@@ -440,10 +433,13 @@ class SurfaceModel:
         return (pe // self.N) * self.T + kk
 
     def linearise(self, st: SurfaceState, y: np.ndarray, wgt: np.ndarray, dtype=np.float32,
-                  need_h: bool = True) -> dict:
+                  need_h: bool = True, skip: np.ndarray | None = None) -> dict:
         """Model, whitened chi^2, gradient g = J^T W (m - y) and (``need_h``) the Gauss-Newton
         matrix H = J^T W J over ``pack``'s parameters, accumulated in float64 from chunk
-        products in ``dtype``. Returns dict(m, chi2, g, H)."""
+        products in ``dtype``. Returns dict(m, chi2, g, H). ``skip`` (N,): nodes of albedo zero
+        whose albedo is held there (a solver's; not for a Fisher matrix): their pairs are not formed,
+        so their albedo's entries of g and H come out zero; every other entry is unchanged (the
+        pairs' other derivatives, and their deposits, carry the albedo as a factor)."""
         resp = self.response(st)
         N, T, w = self.N, self.T, self.w
         S = len(self.offsets)
@@ -458,12 +454,17 @@ class SurfaceModel:
         chi2 = 0.0
         itemsize = np.dtype(dtype).itemsize
         slow = bool(resp.slow)
+        active = None
+        if skip is not None and np.any(skip):
+            if np.any(rho[skip] != 0):
+                raise ReconstructionError("linearise(skip=...): a skipped node's albedo must be zero.")
+            active = ~np.asarray(skip, bool)
 
         def one(t0, t1):
             nt = t1 - t0
             G, Jg = self._geometry(t0, t1, lz, True)
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
-            win = self._windows(st, resp, tau, c2, True, need_tail)
+            win = self._windows(st, resp, tau, c2, True, need_tail, active)
             pe, Bw, dF, dF1 = win["pe"], win["B"], win["dF"], win["dF1"]   # (E,), (E, S)
             s = win["s"][pe]
             rr = np.tile(rho, nt)[pe][:, None]
