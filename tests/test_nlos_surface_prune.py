@@ -2,6 +2,7 @@
 evidence is the exact chi^2 rise without the node, off-surface nodes are pruned and the surface
 kept, and faint nodes that together explain the data are not pruned."""
 import numpy as np
+import pytest
 
 from stircasadi.nlos.relay import Relay
 from stircasadi.nlos.surface.grid import DepthGrid
@@ -124,3 +125,14 @@ def test_the_full_model_stands_when_the_pruned_one_fits_worse_than_chance_allows
     assert info["nodes"] == 9 and info["lr"] >= 100.0 / infl     # measured 111.1: 11.6 of its own
     assert info["lr"] > info["threshold"] and not info["kept"]
     assert not held.any() and not out["mask"].any() and np.all(out["bounds"].hi[N:2 * N] == 1.0)
+
+
+def test_nested_likelihood_ratio_by_hand():
+    """``nested_lr``: 2 (F_restricted - F_general) over the general model's inflation, against the
+    chi^2 quantile of the removed unknowns: F 10 against 4 with chi2/dof 3 gives 4; at chi2/dof
+    below 1 no deflation (12); the threshold of 2 unknowns at p = 0.01 is -2 ln 0.01 = 9.2103."""
+    from stircasadi.nlos.surface.lm import nested_lr
+    lr, need = nested_lr(10.0, 4.0, 300.0, 100, 2, 0.01)
+    assert lr == pytest.approx(4.0, rel=1e-15) and need == pytest.approx(-2 * np.log(0.01), rel=1e-12)
+    lr, need = nested_lr(10.0, 4.0, 50.0, 100, 1, 0.05)
+    assert lr == pytest.approx(12.0, rel=1e-15) and need == pytest.approx(3.841459, rel=1e-6)

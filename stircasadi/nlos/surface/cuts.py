@@ -11,16 +11,16 @@ So the nodes of ``mask.cut_cells`` (the support's border) get a free in-plane ce
 (the covered part's first moment, bounded to the cell: ``SurfaceModel(offset_nodes=...)``), the
 level is solved again from its solution, and the centroids are kept when the likelihood ratio of
 the two nested models (2 K more unknowns) exceeds the chi^2 quantile of 2 K degrees of freedom
-at p = ``CUT_P``, the statistic divided by the inflation max(1, chi2/dof); else the uniform
-cells stand.
+at p = ``CUT_P``, the statistic divided by the inflation max(1, chi2/dof) of the model with
+the centroids (``lm.nested_lr``); else the uniform cells stand.
 """
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2 as _chi2_dist
 
+from .lm import nested_lr
 from .mask import cut_cells
 
 __all__ = ["CUT_P", "fit_cut_cells"]
@@ -44,10 +44,8 @@ def fit_cut_cells(shape, state, res: dict, y, wgt, make_model, make_bounds, solv
     model = make_model(band)
     bounds = make_bounds(model)
     out = solve(model, bounds, replace(state, off=np.zeros((band.size, 2))))
-    dof = max(int(np.size(y)) - model.npar, 1)
     chi2 = float(model.objective(out["state"], y, wgt)[0])
-    lr = 2.0 * (float(res["f"]) - float(out["f"])) / max(1.0, chi2 / dof)
-    need = float(_chi2_dist.isf(CUT_P, 2 * band.size))
+    lr, need = nested_lr(res["f"], out["f"], chi2, int(np.size(y)) - model.npar, 2 * band.size, CUT_P)
     info = {"nodes": int(band.size), "lr": lr, "threshold": need, "p": CUT_P, "kept": bool(lr > need),
             "status": out["status"], "iterations": out["iterations"]}
     return {"info": info, "model": model, "bounds": bounds, "res": out}

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.stats import chi2 as _chi2_dist
 
 from .model import SurfaceModel, SurfaceState
 
-__all__ = ["solve_lm", "Bounds", "last_decrease", "remaining_step", "CONVERGED_STD"]
+__all__ = ["solve_lm", "Bounds", "last_decrease", "nested_lr", "remaining_step", "CONVERGED_STD"]
 
 
 class Bounds:
@@ -110,6 +111,16 @@ def last_decrease(solve: dict) -> float | None:
     plus the prior's penalty it removed (far above 1: the solve had not converged), or None."""
     h = solve.get("history") or []
     return 2.0 * (h[-1]["f"] - h[-1]["f_new"]) if h else None
+
+
+def nested_lr(f_restricted: float, f_general: float, chi2_general: float, dof_general: int, df: int,
+              p: float) -> tuple[float, float]:
+    """The likelihood ratio of two nested solves and its threshold: 2 (F_restricted - F_general)
+    (F: a solve's chi^2 / 2 plus prior) divided by the general model's inflation
+    max(1, chi2 / dof), against the chi^2 quantile of ``df`` (the unknowns the restriction
+    removes) at ``p``. Returns (lr, threshold): the general model is needed where lr > threshold."""
+    lr = 2.0 * (float(f_restricted) - float(f_general)) / max(1.0, float(chi2_general) / max(int(dof_general), 1))
+    return lr, float(_chi2_dist.isf(p, max(int(df), 1)))
 
 
 def prior_vector(st: SurfaceState, M: int) -> np.ndarray:

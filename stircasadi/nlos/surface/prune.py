@@ -19,7 +19,7 @@ max(1, chi2/dof)) get albedo 0, held there (their depth too where no neighbour
 is lit: ``SurfaceModel.seen``), the level is solved again from its solution, and the pruned model
 is kept unless the likelihood ratio of the two nested models exceeds the chi^2 quantile of the
 unknowns removed at p = ``PRUNE_P`` (the pruned nodes then explain signal jointly: the full
-model stands). The ratio uses the full model's solve as it stopped; where that solve had not
+model stands; ``lm.nested_lr``, the full model's inflation). The ratio uses the full model's solve as it stopped; where that solve had not
 converged its chi^2 is above its optimum and the ratio is too small by the decrease left (the
 remaining step's, a few units on the study's scenes, against thresholds of ~100-300).
 """
@@ -29,6 +29,8 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.stats import chi2 as _chi2_dist
+
+from .lm import nested_lr
 
 __all__ = ["PRUNE_P", "node_evidence", "prune_nodes"]
 
@@ -74,9 +76,7 @@ def prune_nodes(state, res: dict, lin: dict, y, wgt, model, set_pruned, make_bou
     set_pruned(cut)
     bounds = make_bounds(model)
     out = solve(model, bounds, s0)
-    chi2 = float(model.objective(out["state"], y, wgt)[0])
-    lr = 2.0 * (float(out["f"]) - float(res["f"])) / max(1.0, chi2 / max(n_y - model.npar, 1))
-    need = float(_chi2_dist.isf(PRUNE_P, max(removed, 1)))
+    lr, need = nested_lr(out["f"], res["f"], lin["chi2"], n_y - model.npar, removed, PRUNE_P)
     kept = bool(lr <= need)
     if not kept:
         set_pruned(np.zeros(N, bool))
