@@ -886,6 +886,31 @@ def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilt
     assert 0 <= 2 * (q["f"] - f["f"]) < 1.5
 
 
+def test_a_relative_tolerance_stop_waits_for_the_undamped_step(tilted_plane):
+    """A loose relative tolerance (tol = 1e-3) on the tilted plane: without ``tol_chi2`` LM stops
+    ("Converged") after 11 iterations with chi^2 188 above the confirmed solve's and depths up to
+    7.2 of its std away (measured); with tol_chi2 = 1 the same small relative decrease only asks
+    the next linearisation's undamped Gauss-Newton step, and LM goes on until that step predicts
+    less than max(1, chi2/dof) (36 iterations, measured)."""
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=60, tol=1e-3, explained=False,
+              edge_offsets=False)
+    early = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=0.0), gate=0.2)
+    held = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=1.0), gate=0.2)
+    e, h = early.levels[0]["solves"][0], held.levels[0]["solves"][0]
+    assert e["status"] == "Converged" and h["status"] == "Converged (step below its std)"
+    assert h["iterations"] > e["iterations"]
+    assert h["history"][-1]["newton"] < max(1.0, held.chi2_dof)
+    assert 2 * (e["f"] - h["f"]) > 50.0                       # measured 188
+    assert np.max(np.abs(early.depth - held.depth) / held.depth_std) > 3.0     # measured 7.2
+
+
 def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation(tilted_plane, monkeypatch):
     """prior="auto", one level, the discrepancy choice forced to 10x its weight: the level is
     solved again, and that re-solve's first step (which reuses the weight choice's

@@ -152,8 +152,8 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
     and the largest depth change ``dz_max`` (m). ``lin0``: ``model.linearise``'s result at ``st``,
     used for the first step instead of a new one (its H is modified in place).
 
-    Stops ("Converged") when a step lowers F by less than ``tol`` relative, or (``tol_chi2`` > 0)
-    when a step's decrease of 2F and the decrease its quadratic model predicted are both below
+    Stops ("Converged") when a step lowers F by less than ``tol`` relative (with ``tol_chi2`` > 0
+    only once the undamped step confirms it, as below), or (``tol_chi2`` > 0) when a step's decrease of 2F and the decrease its quadratic model predicted are both below
     tol_chi2 max(1, chi2/dof): twice the predicted decrease of a Gauss-Newton step d is at least
     d^T H d, its squared length in the Fisher metric, so such a step moved the unknowns by less
     than tol_chi2^(1/2) of their (inflated) standard deviation, jointly; and the undamped
@@ -232,11 +232,13 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
         if not accepted:
             status = "Converged (no decrease possible)"
             break
-        if rel < tol:
+        if rel < tol and tol_chi2 <= 0:
             status = "Converged"
             break
-        if small:
-            confirm = True           # checked on the next linearisation (above)
+        if small or rel < tol:
+            # checked on the next linearisation (above): a relative decrease below ``tol`` is
+            # a short step too, and a damped step is short wherever mu is large
+            confirm = True
     return {"state": st, "status": status, "iterations": it, "history": hist, "success": status.startswith("Converged"),
             "f": float(f), "at_bound": [n for i, n in enumerate(model.glob)
                                         if bounds.at_bound(th)[2 * N + i]]}

@@ -72,7 +72,8 @@ class SurfaceSettings:
     solver: str = "lm"
     #: iteration limit per level (LM iterations, or IPOPT iterations)
     max_iter: int = 30
-    #: convergence: relative decrease of the objective below which LM stops (IPOPT: its tol)
+    #: convergence: relative decrease of the objective below which LM stops (with tol_chi2 > 0
+    #: once the undamped Gauss-Newton step confirms it, as below; IPOPT: its tol)
     tol: float = 1e-6
     #: LM also stops when a step lowered the whitened chi^2 (plus prior) by less than tol_chi2 x
     #: max(1, chi2/dof) and its quadratic model predicted no more: that step moved the unknowns
