@@ -1,4 +1,4 @@
-"""Cells the hidden surface's edge cuts (step 4b of ``nlos/surface/fit.py``): which nodes get a
+"""Cells the hidden surface's edge cuts (step 4c of ``nlos/surface/fit.py``): which nodes get a
 free centroid, and that a centroid offset is exactly a displaced emitter (the scene whose depths
 alternated row by row at 5-8 std because of its cut cells: ``test_nlos_surface_study.py``)."""
 import numpy as np

@@ -1,4 +1,4 @@
-"""Nodes the data give no evidence of (step 4a of ``nlos/surface/fit.py``, ``prune.py``): the
+"""Nodes the data give no evidence of (step 4b of ``nlos/surface/fit.py``, ``prune.py``): the
 evidence is the exact chi^2 rise without the node, off-surface nodes are pruned and the surface
 kept, and faint nodes that together explain the data are not pruned."""
 import numpy as np

@@ -1,4 +1,4 @@
-"""Cells the hidden surface's edge cuts: step 4b of ``fit.py``.
+"""Cells the hidden surface's edge cuts: step 4c of ``fit.py``.
 
 When to use: called by ``fit_surface`` after its last level's solve
 (``SurfaceSettings.edge_offsets``); nothing else needs it.

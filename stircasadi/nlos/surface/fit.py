@@ -31,14 +31,21 @@ Steps
    second solve, 523 -> 323 s at 32 x 32 on the resolution chart, but the start's chi^2 is far
    above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
-   4a. Pruning (``SurfaceSettings.prune``, ``prune.py``): nodes whose albedo explains less of
+   4a. Depth steps (``SurfaceSettings.split_steps``, ``steps.py``): where the lit nodes fall
+   into parts linked only by gentle slopes and two of them, each with an inner node, have a
+   depth step between them (two objects side by side at different depths), the grid takes
+   separate height fields (``DepthGrid.labels``: no difference operator or prior crosses a
+   label's border) and the last level is solved again from its solution, kept when its F ends
+   lower (``levels[-1]["steps"]``). One height field over two bars 11 cm apart in depth tilts the
+   normals of one toward the other (seed 501: a claim 9 std off at chi2/dof 1.023).
+   4b. Pruning (``SurfaceSettings.prune``, ``prune.py``): nodes whose albedo explains less of
    the data than noise would (each node's chi^2 rise without it, exact since the model is
    linear in the albedos, below the chi^2(2) quantile at p = 0.01) get albedo zero, held,
    and the last level is solved again from its solution, kept by a likelihood-ratio test
    (``levels[-1]["pruned"]``). Off-surface nodes that fit noise with barely determined depths
    had kept LM's steps in the response's nonlinear range (actual decrease 0.05-0.4 of the
    predicted) and 10 of 37 single-surface held-out scenes at the iteration limit.
-   4b. Cut cells (``SurfaceSettings.edge_offsets``, ``cuts.py``): the last level is solved
+   4c. Cut cells (``SurfaceSettings.edge_offsets``, ``cuts.py``): the last level is solved
    again with the cells the surface's edge cuts given a free in-plane centroid each, kept by a
    likelihood-ratio test (``levels[-1]["cut_cells"]``). Seed 310 of the study (a square tilted
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
@@ -94,8 +101,9 @@ from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid, normal_std
 from .prior import GCV_PROBES, _choose_lambda  # noqa: F401  (read by the tests, patched by one)
-from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4b's test level, read here)
+from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .prune import prune_nodes
+from .steps import step_labels
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
 from .direct import direct_return
 from .explained import explained_returns
@@ -249,11 +257,13 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         y = rl.traces
         wgt, noise_src = noise_weights(y, rl.sigma, st.noise_sigma)
 
-        def make_model(nodes=None, grid=grid, rl=rl, sub=sub):      # the level's model
-            return SurfaceModel(grid, rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
+        level = {"grid": grid}       # the level's grid (step 4a may label it)
+
+        def make_model(nodes=None, rl=rl, sub=sub):      # the level's model
+            return SurfaceModel(level["grid"], rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
                                 offset_nodes=nodes)
 
-        held = {"pruned": np.zeros(grid.n, bool)}       # step 4a's nodes, albedo held at zero
+        held = {"pruned": np.zeros(grid.n, bool)}       # step 4b's nodes, albedo held at zero
 
         def make_bounds(m):
             b = Bounds(m, 1.0 if st.known_gain else 1e3, sig_b, tail_b)
@@ -292,15 +302,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         rl.gain = rl.gain * gain_scale
         model = make_model()
         bounds = make_bounds(model)
-        h = math.sqrt(grid.hx * grid.hy)
-        lap = grid.laplacian()
-        R = (lap.T @ lap).toarray() / h ** 2
-        if st.albedo_prior > 0:
-            # the albedo's gradient penalty, the integral of |grad rho|^2 over the extent (like
-            # the depth's, independent of the spacing), under the same weight
-            Gx, Gy = grid.gradient_ops()
-            Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * float(st.albedo_prior)
-            R = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), Ra]])
+        R = _prior_operator(grid, st)
         info = {"nodes": n, "rows": int(y.size), "traces": int(rl.n_traces), "subsamples": sub,
                 "solves": []}
         t_lvl = time.perf_counter()
@@ -336,9 +338,31 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 lam = new_lam
                 continue
             break
+        if last and st.split_steps:
+            # two surfaces side by side at different depths: separate height fields, the level
+            # solved again from its solution, kept when its F ends lower (step 4a, ``steps.py``)
+            lab = step_labels(grid.shape, state.z, state.rho, grid.hx, grid.hy)
+            if lab is not None:
+                level["grid"] = replace(grid, labels=lab)
+                R0, R = R, _prior_operator(level["grid"], st)
+                m2 = make_model()
+                b2 = make_bounds(m2)
+                out = solve(m2, b2, state)
+                kept = bool(out["f"] < res["f"])
+                info["steps"] = {"parts": int(lab.max()) + 1, "labels": lab.tolist(), "f": float(out["f"]),
+                                 "f_single": float(res["f"]), "kept": kept, "status": out["status"],
+                                 "iterations": out["iterations"]}
+                _log.info("level %d (%dx%d): split at a depth step: %d parts, F %.6g -> %.6g, kept %s",
+                          li, n, n, info["steps"]["parts"], res["f"], out["f"], kept)
+                if kept:
+                    grid, model, bounds, res, lin = level["grid"], m2, b2, out, None
+                    state = res["state"]
+                    record(res, parts=info["steps"]["parts"])
+                else:
+                    level["grid"], R = grid, R0
         if last and st.prune:
             # nodes off the surface whose albedos fit noise: pruned and the level solved again
-            # from its solution, kept by a likelihood-ratio test (step 4a, ``prune.py``)
+            # from its solution, kept by a likelihood-ratio test (step 4b, ``prune.py``)
             lin_p = lin if lin is not None else model.linearise(state, y, wgt, dtype=dtype)
             pr = prune_nodes(state, res, lin_p, y, wgt, model, lambda m: held.__setitem__("pruned", m),
                              make_bounds, solve)
@@ -352,7 +376,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                     record(res, pruned=int(pr["info"]["nodes"]))
         if last and st.edge_offsets:
             # the cells the edge cuts emit from their covered part: their centroids become
-            # unknowns and the level is solved again from its solution (step 4b, ``cuts.py``)
+            # unknowns and the level is solved again from its solution (step 4c, ``cuts.py``)
             cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve)
             if cut is not None:
                 info["cut_cells"] = cut["info"]
@@ -389,6 +413,20 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
                    relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes, pending, bounds)
+
+
+def _prior_operator(grid: DepthGrid, st: SurfaceSettings) -> np.ndarray:
+    """The smoothness prior's matrix R over the depths (the penalty sum (Lap z / h)^2), and with
+    ``albedo_prior`` over the albedos too (the integral of |grad rho|^2 over the extent, like the
+    depth's independent of the spacing, under the same weight times ``albedo_prior``)."""
+    h = math.sqrt(grid.hx * grid.hy)
+    lap = grid.laplacian()
+    R = (lap.T @ lap).toarray() / h ** 2
+    if st.albedo_prior > 0:
+        Gx, Gy = grid.gradient_ops()
+        Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * float(st.albedo_prior)
+        R = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), Ra]])
+    return R
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,
@@ -488,13 +526,14 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
-    # pruned nodes (step 4a) beside the mask: their albedo is held at zero, a model choice and
+    # pruned nodes (step 4b) beside the mask: their albedo is held at zero, a model choice and
     # not an estimate (neighbouring albedos trade; one may have sat near zero at the first
     # solve), so their numbers are marked with the edge's, not claimed
     held = (bounds.hi[N:2 * N] <= 0.0).reshape(shape) if bounds is not None else np.zeros(shape, bool)
     held_edge = held & binary_dilation(mask.reshape(shape), structure=np.ones((3, 3), bool))
     edge = edge | held_edge
-    step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy)
+    step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy,
+                      labels=grid.labels)
     if step is not None:
         reasons.append(f"two surfaces side by side at different depths: nodes of two separate parts of the "
                        f"mask {step['distance']:.3g} m apart (two nodes or fewer) differ by {step['dz']:.3g} m "
@@ -509,7 +548,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                      f"the noise only, not the error of the edge's model ({how})")
     if held_edge.any():
         notes.append(f"{int(held_edge.sum())} pruned node(s) beside the mask (albedo held at zero: no evidence of "
-                     "their own, step 4a) are marked in SurfaceResult.edge too: their albedo is a model choice, "
+                     "their own, step 4b) are marked in SurfaceResult.edge too: their albedo is a model choice, "
                      "not an estimate, and their std do not hold its error")
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
@@ -541,7 +580,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "depth_step": step,
                 # a last level cut by its iteration limit: what the remaining Gauss-Newton step moves
                 "remaining_step": remaining,
-                # the cut cells' fitted centroid offsets (step 4b): node indices, (K, 2) metres
+                # the cut cells' fitted centroid offsets (step 4c): node indices, (K, 2) metres
                 "cell_offsets": {"nodes": model.onodes.tolist(),
                                  "offset_m": model.centroid_offsets(state).tolist()} if model.K else None,
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)

@@ -11,6 +11,11 @@ Inside its cell the surface is the node's second-order patch
 z(dx, dy) = z + gx dx + gy dy + (zxx dx^2 + zyy dy^2) / 2 + zxy dx dy, with the curvatures from
 second differences (``curvature_ops``): cells are not flat, so a curved object is not a set of
 facets. The discrete Laplacian (5-point, Neumann border) is the smoothness prior's operator.
+
+With ``labels`` (one integer per node) the grid holds separate height fields: every difference
+operator runs along each row's and column's runs of equal label only, each run's ends taking the
+border's stencils, so a node's depth never enters the gradient, curvature or Laplacian of a node
+of another label (two surfaces side by side at different depths: ``steps.py``).
 """
 from __future__ import annotations
 
@@ -50,6 +55,24 @@ def _second_1d(n: int, h: float) -> sp.csr_matrix:
     return D.tocsr()
 
 
+def _runs(labels: np.ndarray, axis: int, op1d) -> sp.csr_matrix:
+    """The (n, n) operator applying ``op1d(length)`` to each run of equal label along ``axis``
+    (1: along x, inside each row; 0: along y, inside each column) of the (ny, nx) ``labels``."""
+    ny, nx = labels.shape
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    lines = [(labels[i], idx[i]) for i in range(ny)] if axis == 1 else [(labels[:, j], idx[:, j]) for j in range(nx)]
+    rows, cols, vals = [], [], []
+    for lab, ids in lines:
+        cut = np.flatnonzero(np.diff(lab) != 0) + 1
+        for seg in np.split(ids, cut):
+            D = sp.coo_matrix(op1d(len(seg)))
+            rows.append(seg[D.row])
+            cols.append(seg[D.col])
+            vals.append(D.data)
+    n = ny * nx
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+
+
 def _lap_1d(n: int) -> sp.csr_matrix:
     if n == 1:
         return sp.csr_matrix((1, 1))
@@ -60,11 +83,24 @@ def _lap_1d(n: int) -> sp.csr_matrix:
 
 @dataclass
 class DepthGrid:
-    """A lateral grid (x columns, y rows) in a frame; node index n = iy * nx + ix."""
+    """A lateral grid (x columns, y rows) in a frame; node index n = iy * nx + ix; ``labels``
+    (n,) integers: separate height fields (the module docstring), or None: one."""
 
     x: np.ndarray
     y: np.ndarray
     frame: tuple
+    labels: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.labels is not None:
+            lab = np.asarray(self.labels)
+            if lab.shape != (self.n,) or not np.issubdtype(lab.dtype, np.integer):
+                from ...errors import ReconstructionError
+                raise ReconstructionError(f"DepthGrid labels must be {self.n} integers, one per node (row-major); "
+                                          f"got shape {lab.shape} of {lab.dtype}.")
+
+    def _lab(self):
+        return None if self.labels is None else np.asarray(self.labels).reshape(self.shape)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -91,6 +127,9 @@ class DepthGrid:
     def gradient_ops(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse (n, n) operators giving gx, gy from the flattened depth map."""
         ny, nx = self.shape
+        lab = self._lab()
+        if lab is not None:
+            return (_runs(lab, 1, lambda k: _diff_1d(k, self.hx)), _runs(lab, 0, lambda k: _diff_1d(k, self.hy)))
         Gx = sp.kron(sp.eye(ny), _diff_1d(nx, self.hx)).tocsr()
         Gy = sp.kron(_diff_1d(ny, self.hy), sp.eye(nx)).tocsr()
         return Gx, Gy
@@ -99,14 +138,22 @@ class DepthGrid:
         """Sparse (n, n) operators giving zxx, zyy, zxy (second differences; a border node takes
         its inner neighbour's stencil): the curvature of the surface inside each node's cell."""
         ny, nx = self.shape
-        Dxx = sp.kron(sp.eye(ny), _second_1d(nx, self.hx)).tocsr()
-        Dyy = sp.kron(_second_1d(ny, self.hy), sp.eye(nx)).tocsr()
+        lab = self._lab()
+        if lab is not None:
+            Dxx = _runs(lab, 1, lambda k: _second_1d(k, self.hx))
+            Dyy = _runs(lab, 0, lambda k: _second_1d(k, self.hy))
+        else:
+            Dxx = sp.kron(sp.eye(ny), _second_1d(nx, self.hx)).tocsr()
+            Dyy = sp.kron(_second_1d(ny, self.hy), sp.eye(nx)).tocsr()
         Gx, Gy = self.gradient_ops()
         return Dxx, Dyy, (Gy @ Gx).tocsr()
 
     def laplacian(self) -> sp.csr_matrix:
         """5-point Laplacian (unit spacing, Neumann border): second differences of depth."""
         ny, nx = self.shape
+        lab = self._lab()
+        if lab is not None:
+            return (_runs(lab, 1, _lap_1d) + _runs(lab, 0, _lap_1d)).tocsr()
         return (sp.kron(sp.eye(ny), _lap_1d(nx)) + sp.kron(_lap_1d(ny), sp.eye(nx))).tocsr()
 
     def geometry(self, z: np.ndarray):

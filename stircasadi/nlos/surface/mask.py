@@ -93,7 +93,8 @@ def edge_map(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 
 def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy: float,
-               reach: int = 2, slope: float = 0.7):
+               reach: int = 2, slope: float = 0.7, labels: np.ndarray | None = None,
+               parts: np.ndarray | None = None):
     """The steepest depth step between two separate parts of the mask (8-connected components)
     at most ``reach`` nodes apart: pairs whose depth difference, less 3 std of it (the two std
     in quadrature), exceeds ``slope`` times their lateral distance (0.7: 35 deg, above the study's
@@ -103,14 +104,21 @@ def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy
     two bars 11 cm apart in depth the fit reached chi2/dof 1.023 with a claim 9 std off: seed 501
     of the study); three or more nodes apart, each side's neighbour takes its own depth and the
     height field holds both (``tests/test_nlos_explained.py``: two bars 12 cm apart with a gap of
-    two nodes, explained). A steep surface in one piece is not a step.
+    two nodes, explained). A steep surface in one piece is not a step. ``labels``: the grid's
+    separate height fields (``DepthGrid.labels``); a step between two of them is modelled, not
+    reported. ``parts``: the mask's parts given (integers, 0 outside them) instead of its
+    8-connected components (``steps.step_labels``: parts linked only by gentle slopes).
 
     Returns None, or a dict with the pair's nodes (row-major), lateral distance, depth difference
     and its slope."""
     from scipy.ndimage import label
 
     m = np.asarray(mask, bool)
-    lab, n_parts = label(m, structure=np.ones((3, 3), bool))
+    if parts is None:
+        lab, n_parts = label(m, structure=np.ones((3, 3), bool))
+    else:
+        lab = np.where(m, np.asarray(parts).reshape(m.shape), 0)
+        n_parts = len(np.unique(lab[m]))
     if n_parts < 2:
         return None
     ny, nx = m.shape
@@ -126,6 +134,9 @@ def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy
             a = (slice(y0, y1), slice(x0, x1))
             b = (slice(y0 + dy, y1 + dy), slice(x0 + dx, x1 + dx))
             apart = m[a] & m[b] & (lab[a] != lab[b])
+            if labels is not None:
+                L = np.asarray(labels).reshape(m.shape)
+                apart &= L[a] == L[b]
             if not apart.any():
                 continue
             d = float(np.hypot(dx * hx, dy * hy))

@@ -1,4 +1,4 @@
-"""Nodes the data give no evidence of: step 4a of ``fit.py``.
+"""Nodes the data give no evidence of: step 4b of ``fit.py``.
 
 When to use: called by ``fit_surface`` after its last level's solve (``SurfaceSettings.prune``);
 nothing else needs it.

@@ -65,6 +65,10 @@ class SurfaceSettings:
     #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01) get albedo zero and the
     #: last level is solved again, kept by a likelihood-ratio test; False: every node stays free
     prune: bool = True
+    #: two lit parts side by side with a depth step between them (``steps.py``) get separate
+    #: height fields (no difference operator or prior crosses their border) and the last level is
+    #: solved again, kept when it ends lower; False: one height field over the whole grid
+    split_steps: bool = True
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
     #: "lm": bounded Levenberg-Marquardt with the exact Gauss-Newton matrix (default; 5-20
