@@ -59,7 +59,9 @@ def verdict(success: bool, sc: dict) -> str:
     return "OK"
 
 
-def run_one(seed: int, nodes: int, levels: int, prior) -> dict:
+def run_one(seed: int, nodes: int, levels: int, prior, **settings) -> dict:
+    """Render seed's twin, fit it by the default route and score it (``settings``: more fields of
+    ``SurfaceSettings``, for twin experiments)."""
     from stircasadi.nlos import VolumeSettings, backprojection, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
     from stircasadi.testing.surfaces import WALL_RHO, random_surface_twin, score_surface
@@ -71,7 +73,7 @@ def run_one(seed: int, nodes: int, levels: int, prior) -> dict:
     rl.gain[:] = (WALL_RHO / np.pi) ** 2
     vol = (lct if rl.confocal else backprojection)(rl, VolumeSettings(gate_m=0.2, n_lateral=16))
     res = fit_surface(rl, vol.maps(), SurfaceSettings(n_nodes=nodes, levels=levels, known_gain=True,
-                                                      prior=prior), gate=0.2)
+                                                      prior=prior, **settings), gate=0.2)
     sc = score_surface(res, truth)
     pruned = res.levels[-1].get("pruned") or {}
     return {"seed": seed, "scene": desc, "kind": truth["kind"], "relay": truth["relay"],
@@ -80,6 +82,8 @@ def run_one(seed: int, nodes: int, levels: int, prior) -> dict:
             "reasons": list(res.reasons),
             "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
             "pruned": pruned.get("nodes", 0) if pruned.get("kept") else 0,
+            "split": (res.levels[-1].get("steps") or {}).get("parts", 0)
+            if (res.levels[-1].get("steps") or {}).get("kept") else 0,
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
             "verdict": verdict(bool(res.success), sc), **sc}
 

@@ -89,3 +89,23 @@ def test_a_tilted_square_with_cut_cells_is_covered_by_its_std():
     assert r["verdict"] == "OK", r
     assert r["beyond4"] == 0 and r["coverage2"] >= 0.9
     assert r["depth_mae"] < 0.45e-3
+
+
+@pytest.mark.slow
+def test_two_bars_at_two_depths_get_a_height_field_each():
+    """Seed 513 of ``benchmarks/surface_coverage.py`` (two bars 11.3 cm apart in depth, one node
+    between them on the 12 x 12 grid, confocal, 0.75 % noise). One height field: the node between
+    them enters both bars' central differences and tilts their normals (median 13.8 deg measured,
+    asserted above 5) and the fit fails by the depth-step check or its iteration limit. Split
+    (step 4a, ``steps.py``): two labels kept, median normal error 0.39 deg, depth MAE 0.43 mm,
+    albedo MAE 0.039 (measured; asserted below 1.5 deg, 1 mm, 0.1), no depth-step reason, and
+    the verdict is never SILENT-WRONG."""
+    from surface_coverage import run_one
+
+    one = run_one(513, 12, 2, "none", split_steps=False)
+    assert one["split"] == 0 and one["normal_deg_median"] > 5.0 and not one["success"]
+    r = run_one(513, 12, 2, "none")
+    assert r["split"] == 2
+    assert r["normal_deg_median"] < 1.5 and r["depth_mae"] < 1e-3 and r["albedo_mae"] < 0.1
+    assert not any("side by side" in x for x in r["reasons"])
+    assert r["verdict"] in ("OK", "FLAGGED"), r
