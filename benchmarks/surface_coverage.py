@@ -76,14 +76,14 @@ def run_one(seed: int, nodes: int, levels: int, prior, **settings) -> dict:
                                                       prior=prior, **settings), gate=0.2)
     sc = score_surface(res, truth)
     pruned = res.levels[-1].get("pruned") or {}
+    steps = res.levels[-1].get("steps") or {}
     return {"seed": seed, "scene": desc, "kind": truth["kind"], "relay": truth["relay"],
             "noise": truth["noise"], "render_s": t1 - t0, "fit_s": time.perf_counter() - t1,
             "success": bool(res.success), "chi2_dof": float(res.chi2_dof), "dof": int(res.dof),
             "reasons": list(res.reasons),
             "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
             "pruned": pruned.get("nodes", 0) if pruned.get("kept") else 0,
-            "split": (res.levels[-1].get("steps") or {}).get("parts", 0)
-            if (res.levels[-1].get("steps") or {}).get("kept") else 0,
+            "split": steps.get("parts", 0) if steps.get("kept") else 0,
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
             "verdict": verdict(bool(res.success), sc), **sc}
 

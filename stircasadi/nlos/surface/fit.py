@@ -32,8 +32,8 @@ Steps
    above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
    3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
    4a. Depth steps (``SurfaceSettings.split_steps``, ``steps.py``): where the lit nodes fall
-   into parts linked only by gentle slopes and two of them, each with an inner node, have a
-   depth step between them (two objects side by side at different depths), the grid takes
+   into parts linked only by gentle slopes and two of them (at least 3 nodes and a quarter of
+   the brightest part's summed albedo each) have a depth step between them (two objects side by side at different depths), the grid takes
    separate height fields (``DepthGrid.labels``: no difference operator or prior crosses a
    label's border) and the last level is solved again from its solution, kept when its F ends
    lower (``levels[-1]["steps"]``). One height field over two bars 11 cm apart in depth tilts the

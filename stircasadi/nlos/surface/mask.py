@@ -92,6 +92,16 @@ def edge_map(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return mask & binary_dilation(cut, structure=k)[1:-1, 1:-1]
 
 
+def shifted_pair(shape, dy: int, dx: int):
+    """Slices (a, b) of an (ny, nx) map such that ``m[a]`` and ``m[b]`` pair every node with its
+    neighbour ``dy`` rows down and ``dx`` columns across (dy >= 0); None where no node has one."""
+    ny, nx = shape
+    y1, x0, x1 = ny - dy, max(0, -dx), min(nx, nx - dx)
+    if y1 <= 0 or x1 <= x0:
+        return None
+    return (slice(0, y1), slice(x0, x1)), (slice(dy, y1 + dy), slice(x0 + dx, x1 + dx))
+
+
 def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy: float,
                reach: int = 2, slope: float = 0.7, labels: np.ndarray | None = None,
                parts: np.ndarray | None = None):
@@ -122,20 +132,19 @@ def depth_step(mask: np.ndarray, z: np.ndarray, z_std: np.ndarray, hx: float, hy
     if n_parts < 2:
         return None
     ny, nx = m.shape
+    L = None if labels is None else np.asarray(labels).reshape(m.shape)
     best = None
     for dy in range(0, reach + 1):
         for dx in range(-reach, reach + 1):
             if (dy == 0 and dx <= 0) or max(abs(dx), dy) > reach:
                 continue
-            y0, y1 = 0, ny - dy
-            x0, x1 = max(0, -dx), min(nx, nx - dx)
-            if y1 <= y0 or x1 <= x0:
+            pair = shifted_pair(m.shape, dy, dx)
+            if pair is None:
                 continue
-            a = (slice(y0, y1), slice(x0, x1))
-            b = (slice(y0 + dy, y1 + dy), slice(x0 + dx, x1 + dx))
+            a, b = pair
+            y0, x0 = a[0].start, a[1].start
             apart = m[a] & m[b] & (lab[a] != lab[b])
-            if labels is not None:
-                L = np.asarray(labels).reshape(m.shape)
+            if L is not None:
                 apart &= L[a] == L[b]
             if not apart.any():
                 continue

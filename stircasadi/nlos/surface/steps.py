@@ -13,12 +13,12 @@ piece stays one part; the nodes of a gap between two objects, whose cells the tw
 cut, take depths between theirs and fall into dim parts of their own); when two parts of at
 least ``MIN_PART`` nodes whose summed albedo is at least ``MIN_SHARE`` of the brightest part's
 (a surface, not a speck of noise or a strip of cells both edges cut) have a depth step between
-them (``mask.depth_step`` on those parts,
-before any std exist), every node takes the label of its nearest such part (Euclidean distance
-over the grid) and the grid becomes a labelled one (``DepthGrid.labels``: no difference
-operator, and no smoothness prior, crosses a label's border); the level is solved again from its
-solution, and the split is kept when its F (chi^2 / 2 plus prior) ends below the single field's
-(the two models have the same unknowns; neither is nested in the other).
+them (``mask.depth_step`` on those parts, before any std exist), every node takes the label of
+its nearest such part (Euclidean distance over the grid) and the grid becomes a labelled one
+(``DepthGrid.labels``: no difference operator, and no smoothness prior, crosses a label's
+border); the level is solved again from its solution, and the split is kept when its F (chi^2 /
+2 plus prior) ends below the single field's (the two models have the same unknowns; neither is
+nested in the other).
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .mask import depth_step
+from .mask import depth_step, shifted_pair
 
 __all__ = ["MIN_PART", "MIN_SHARE", "SLOPE", "smooth_parts", "step_labels"]
 
@@ -46,9 +46,10 @@ def smooth_parts(lit: np.ndarray, z: np.ndarray, hx: float, hy: float, slope: fl
     idx = np.arange(ny * nx).reshape(ny, nx)
     rows, cols = [], []
     for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):
-        y1, x0, x1 = ny - dy, max(0, -dx), min(nx, nx - dx)
-        a = (slice(0, y1), slice(x0, x1))
-        b = (slice(dy, y1 + dy), slice(x0 + dx, x1 + dx))
+        pair = shifted_pair(lit.shape, dy, dx)
+        if pair is None:
+            continue
+        a, b = pair
         ok = lit[a] & lit[b] & (np.abs(z[a] - z[b]) <= slope * np.hypot(dx * hx, dy * hy))
         rows.append(idx[a][ok])
         cols.append(idx[b][ok])
@@ -75,10 +76,8 @@ def step_labels(shape, z: np.ndarray, rho: np.ndarray, hx: float, hy: float) -> 
     ok = (sizes >= MIN_PART) & (light >= MIN_SHARE * light.max())
     ok[0] = False
     big = ok[parts]
-    if len(np.unique(parts[big])) < 2:
-        return None
-    if depth_step(big, zz, np.zeros(shape), hx, hy, slope=SLOPE, parts=parts) is None:
-        return None
     keys = np.unique(parts[big])
+    if len(keys) < 2 or depth_step(big, zz, np.zeros(shape), hx, hy, slope=SLOPE, parts=parts) is None:
+        return None
     _, (iy, ix) = distance_transform_edt(~big, sampling=(hy, hx), return_indices=True)
     return np.searchsorted(keys, parts[iy, ix]).ravel()
