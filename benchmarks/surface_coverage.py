@@ -59,15 +59,16 @@ def verdict(success: bool, sc: dict) -> str:
     return "OK"
 
 
-def run_one(seed: int, nodes: int, levels: int, prior, **settings) -> dict:
-    """Render seed's twin, fit it by the default route and score it (``settings``: more fields of
-    ``SurfaceSettings``, for twin experiments)."""
+def run_one(seed: int, nodes: int, levels: int, prior, noise=None, **settings) -> dict:
+    """Render seed's twin, fit it by the default route and score it (``noise``: the twin's
+    relative noise instead of its drawn one; ``settings``: more fields of ``SurfaceSettings``;
+    both for twin experiments)."""
     from stircasadi.nlos import VolumeSettings, backprojection, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
     from stircasadi.testing.surfaces import WALL_RHO, random_surface_twin, score_surface
 
     t0 = time.perf_counter()
-    cap, truth, desc = random_surface_twin(seed)
+    cap, truth, desc = random_surface_twin(seed, noise=noise)
     t1 = time.perf_counter()
     rl = from_capture(cap)
     rl.gain[:] = (WALL_RHO / np.pi) ** 2
@@ -84,6 +85,7 @@ def run_one(seed: int, nodes: int, levels: int, prior, **settings) -> dict:
             "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
             "pruned": pruned.get("nodes", 0) if pruned.get("kept") else 0,
             "split": steps.get("parts", 0) if steps.get("kept") else 0,
+            "subsamples": int(res.levels[-1]["subsamples"]),
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
             "verdict": verdict(bool(res.success), sc), **sc}
 

@@ -724,7 +724,7 @@ def test_a_solve_cut_by_its_iteration_limit_says_how_far_it_was_from_converging(
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01,
                                                    max_iter=2, edge_offsets=False,
-                                                   prune=False), gate=0.2)
+                                                   prune=False, quadrature_check=False), gate=0.2)
     so = res.levels[0]["solves"][0]
     assert so["status"] == "Maximum_Iterations_Exceeded" and not res.success
     drop = 2 * (so["history"][-1]["f"] - so["history"][-1]["f_new"])   # no prior: the chi^2 drop
@@ -784,7 +784,7 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
 
     monkeypatch.setattr(F, "solve_lm", first_cut)
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=2, known_gain=True, sigma0=0.01,
-                                                   max_iter=40, prune=False), gate=0.2)
+                                                   max_iter=40, prune=False, quadrature_check=False), gate=0.2)
     assert calls == [16, 36, 36]       # the last level solved again with its cut cells' centroids
     assert res.levels[0]["status"] == "Maximum_Iterations_Exceeded" and res.levels[1]["success"]
     assert not any(r.startswith("level") for r in res.reasons)
@@ -925,7 +925,8 @@ def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation
     relay = from_capture(cap)
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=6, edge_offsets=False, prune=False)
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=6, edge_offsets=False, prune=False,
+              quadrature_check=False)
     plain = fit_surface(relay, init, SurfaceSettings(**kw, prior="none"), gate=0.2)
     real, calls = fitmod._choose_lambda, []
 

@@ -123,13 +123,16 @@ TWIN_KINDS = ("square", "disk", "letter", "cap", "two")
 
 
 def random_surface_twin(seed: int, half: float = 0.15, n_patch: int = 30, n_wall: int = 8,
-                        wall_half: float = 0.3, fwhm: float = 0.03):
+                        wall_half: float = 0.3, fwhm: float = 0.03, noise: float | None = None):
     """A seeded random hidden surface behind the relay wall, drawn from ``seed`` alone:
     ``kind`` one of TWIN_KINDS (a square or a disk on a tilted plane, an L-shaped letter, a
     spherical cap, two squares at two depths), depth 0.28-0.5 m, tilt 0-30 deg about a random
     axis, size 0.09-0.15 m, offset up to 4 cm, albedo 0.3-0.9, relay confocal or paired (4
     lasers), noise 0.3-3 % of the largest hidden return. Rendered by ``transport.simulate`` (1 cm
     Lambertian patches over [-half, half]^2, three bounces, Gaussian response of ``fwhm``).
+
+    ``noise``: this relative noise level instead of the drawn one (the same scene and noise
+    seed otherwise: twin experiments at another noise).
 
     Returns (capture, truth, description): truth holds ``depth_fn(x, y)`` and ``support_fn(x,
     y)`` (world x, y on the wall, z = depth; the support as rendered, patch by patch), ``albedo``
@@ -144,7 +147,8 @@ def random_surface_twin(seed: int, half: float = 0.15, n_patch: int = 30, n_wall
     s = float(rng.uniform(0.09, 0.15))
     cx, cy = rng.uniform(-0.04, 0.04, 2)
     rho = float(rng.uniform(0.3, 0.9))
-    noise = float(10 ** rng.uniform(np.log10(0.003), np.log10(0.03)))
+    drawn = float(10 ** rng.uniform(np.log10(0.003), np.log10(0.03)))      # drawn in any case
+    noise = drawn if noise is None else float(noise)
     lim = half - 1e-9
 
     def inside(x, y, a):          # the square |x|, |y| <= a about (cx, cy), inside the rendered square
@@ -206,7 +210,7 @@ def random_surface_twin(seed: int, half: float = 0.15, n_patch: int = 30, n_wall
 def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
     """A surface fit against a ``random_surface_twin``'s truth, on the nodes whose whole cell
     (q x q sub-points) lies on the support with no depth step inside (the "full" nodes): depth,
-    normal and albedo errors (MAE over the full nodes), the coverage of the claims (|err| / std < 2
+    normal and albedo errors (MAE over the full nodes; ``depth_bias`` the mean signed depth error), the coverage of the claims (|err| / std < 2
     over the depths and albedos of the full nodes the fit does not mark as ``edge``; the edge
     nodes' coverage apart: their std exclude the partial-cell error by the fit's own note), and
     the mask against the support; with ``maps`` also the (n, n)
@@ -255,6 +259,7 @@ def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
         extra = {"full": full, "depth_z": np.where(full, z_d, np.nan), "albedo_z": np.where(full, z_a, np.nan),
                  "depth_err": np.where(full, err_d, np.nan)}
     return extra | {"n_full": int(full.sum()), "depth_mae": float(np.mean(np.abs(dz))) if full.any() else None,
+            "depth_bias": float(np.mean(dz)) if full.any() else None,
             "normal_deg_median": float(np.median(ang)) if full.any() else None,
             "albedo_mae": float(np.mean(np.abs(da))) if full.any() else None,
             "n_inner": int(inner.sum()),

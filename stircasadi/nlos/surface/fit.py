@@ -27,17 +27,14 @@ Steps
    albedo error halves and the depth's weight drops 1 117 -> 35, its error 0.18 -> 0.46 mm);
    a coarse level's weight starts the next level (the penalty approximates the integral of
    (del^2 z)^2, independent of the spacing), and the last level is re-solved when its weight
-   moved by more than 3x. (Choosing the last level's weight at its own start instead saved that
-   second solve, 523 -> 323 s at 32 x 32 on the resolution chart, but the start's chi^2 is far
-   above what the level reaches, so the weight came out too large: 16 x 16 chi2/dof 4.72 against
-   3.73 without a prior, 32 x 32 tilt 10.8 against 2.4 deg.)
+   moved by more than 3x (chosen at the level's start, from a chi^2 far above what it reaches,
+   the weight came out too large: 32 x 32 tilt 10.8 against 2.4 deg on the resolution chart).
    4a. Depth steps (``SurfaceSettings.split_steps``, ``steps.py``): where the lit nodes fall
    into parts linked only by gentle slopes and two of them (at least 3 nodes and a quarter of
-   the brightest part's summed albedo each) have a depth step between them (two objects side by side at different depths), the grid takes
+   the brightest part's summed albedo each) have a depth step between them, the grid takes
    separate height fields (``DepthGrid.labels``: no difference operator or prior crosses a
    label's border) and the last level is solved again from its solution, kept when its F ends
-   lower (``levels[-1]["steps"]``). One height field over two bars 11 cm apart in depth tilts the
-   normals of one toward the other (seed 501: a claim 9 std off at chi2/dof 1.023).
+   lower (``levels[-1]["steps"]``; one field over two bars tilts their normals: seed 501).
    4b. Pruning (``SurfaceSettings.prune``, ``prune.py``): nodes whose albedo explains less of
    the data than noise would (each node's chi^2 rise without it, exact since the model is
    linear in the albedos, below the chi^2(2) quantile at p = 0.01) get albedo zero, held,
@@ -50,6 +47,10 @@ Steps
    likelihood-ratio test (``levels[-1]["cut_cells"]``). Seed 310 of the study (a square tilted
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
    std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std.
+   4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): the model with one
+   more sub-sample per cell side is linearised at the solution; when its Gauss-Newton step moves
+   a lit node by half its std or more the level is solved again with it (up to 4 x 4,
+   ``levels[-1]["quadrature"]``), else a reason.
    The result is the last level's: a coarser level cut by its iteration limit (or with a
    response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
    last level refits every unknown and is judged by its own solve and the checks below). The
@@ -100,8 +101,9 @@ from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid, normal_std
-from .prior import GCV_PROBES, _choose_lambda  # noqa: F401  (read by the tests, patched by one)
+from .prior import GCV_PROBES, _choose_lambda, prior_operator  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
+from .quadrature import refine_quadrature
 from .prune import prune_nodes
 from .steps import step_labels
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
@@ -302,7 +304,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
         rl.gain = rl.gain * gain_scale
         model = make_model()
         bounds = make_bounds(model)
-        R = _prior_operator(grid, st)
+        R = prior_operator(grid, st)
         info = {"nodes": n, "rows": int(y.size), "traces": int(rl.n_traces), "subsamples": sub,
                 "solves": []}
         t_lvl = time.perf_counter()
@@ -344,7 +346,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             lab = step_labels(grid.shape, state.z, state.rho, grid.hx, grid.hy)
             if lab is not None:
                 level["grid"] = replace(grid, labels=lab)
-                R0, R = R, _prior_operator(level["grid"], st)
+                R0, R = R, prior_operator(level["grid"], st)
                 m2 = make_model()
                 b2 = make_bounds(m2)
                 out = solve(m2, b2, state)
@@ -385,6 +387,19 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                     model, bounds, res, lin = cut["model"], cut["bounds"], cut["res"], None
                     state = res["state"]
                     record(res, offset_nodes=int(model.K))
+        if last and st.quadrature_check:
+            # is q x q sub-samples per cell fine enough for this noise? (step 4d, ``quadrature.py``)
+            qd = refine_quadrature(state, res, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve)
+            info["quadrature"] = qd["info"]
+            if qd["model"] is not model:
+                model, bounds, res, lin = qd["model"], qd["bounds"], qd["res"], None
+                state = res["state"]
+                info["subsamples"] = int(model.sub)
+                record(res, subsamples=int(model.sub), **({"offset_nodes": int(model.K)} if model.K else {}))
+            if not qd["converged"]:
+                reasons.append(f"level {li} ({n}x{n}): the cells' integration is not converged at {model.sub} x "
+                               f"{model.sub} sub-samples (the model with one more moves a lit node by "
+                               f"{qd['info'][-1]['max_std']:.3g} std): the numbers hold its error")
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})
         levels.append(info)
@@ -413,20 +428,6 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     # with prior="auto" the weight check after the last solve linearised at the final state (float64)
     return _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise_src, rl,
                    relay.n_traces, t_start, (relay, gate, q_dir), lin, r0, notes, pending, bounds)
-
-
-def _prior_operator(grid: DepthGrid, st: SurfaceSettings) -> np.ndarray:
-    """The smoothness prior's matrix R over the depths (the penalty sum (Lap z / h)^2), and with
-    ``albedo_prior`` over the albedos too (the integral of |grad rho|^2 over the extent, like the
-    depth's independent of the spacing, under the same weight times ``albedo_prior``)."""
-    h = math.sqrt(grid.hx * grid.hy)
-    lap = grid.laplacian()
-    R = (lap.T @ lap).toarray() / h ** 2
-    if st.albedo_prior > 0:
-        Gx, Gy = grid.gradient_ops()
-        Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * float(st.albedo_prior)
-        R = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), Ra]])
-    return R
 
 
 def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettings, gain_scale: float,

@@ -10,7 +10,7 @@ import math
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-__all__ = ["GCV_PROBES"]
+__all__ = ["GCV_PROBES", "prior_operator"]
 
 
 #: Rademacher probes of the GCV trace estimate (seeded: the same probes for every candidate)
@@ -105,3 +105,17 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf, out_inf
                          "slack_bound": bool(min(valid) > min(lowest, chi2) * (1 + 1e-12)),
                          "lam_unbounded": float(max(ok_all)) if ok_all else 0.0})
     return (max(ok) if ok else 0.0), out
+
+
+def prior_operator(grid, st) -> np.ndarray:
+    """The smoothness prior's matrix R over the depths (the penalty sum (Lap z / h)^2), and with
+    ``albedo_prior`` over the albedos too (the integral of |grad rho|^2 over the extent, like the
+    depth's independent of the spacing, under the same weight times ``albedo_prior``)."""
+    h = math.sqrt(grid.hx * grid.hy)
+    lap = grid.laplacian()
+    R = (lap.T @ lap).toarray() / h ** 2
+    if st.albedo_prior > 0:
+        Gx, Gy = grid.gradient_ops()
+        Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * float(st.albedo_prior)
+        R = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), Ra]])
+    return R
