@@ -17,7 +17,9 @@ sets the smoothness prior's weight by the discrepancy principle (without a prior
 over 16 x 16 traces is ill-posed). The fit runs on ``SurfaceSettings.threads`` threads (default:
 the process's CPUs, at most 4, or 1 under OMP_NUM_THREADS=1; ``--threads``), ``--max-iter`` LM
 iterations per level (default 12); each row records both. ``--albedo-prior A`` adds the albedo's
-gradient penalty at relative weight A under the chosen prior (``SurfaceSettings.albedo_prior``).
+gradient penalty at relative weight A under the chosen prior (``SurfaceSettings.albedo_prior``);
+``--no-quadrature-check`` keeps the size rule's sub-samples per cell (step 4d of the fit off):
+the row records the sub-samples the fit ended with and each check of step 4d.
 """
 from __future__ import annotations
 
@@ -101,7 +103,7 @@ def ytal_bp(cap, cg, n, nz):
 
 
 def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12,
-                albedo_prior: float = 0.0) -> dict:
+                albedo_prior: float = 0.0, quadrature_check: bool = True) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
     the process's maximum resident memory, the precision-weighted plane through the mask."""
     import resource
@@ -112,7 +114,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
                            wall_step=4, n_nodes=n, levels=levels, max_iter=max_iter, threads=threads,
                            prior=prior if prior in ("auto", "gcv", "none") else float(prior),
-                           albedo_prior=albedo_prior)
+                           albedo_prior=albedo_prior, quadrature_check=quadrature_check)
     dt = time.perf_counter() - t0
     s = est.surface
     z0, tilt = s.plane()          # weighted by the nodes' precision, 1 / depth std^2
@@ -122,6 +124,8 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
             "prior": prior, "prior_weight": s.prior_weight, "albedo_prior": albedo_prior, "success": s.success,
             "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
+            "quadrature_check": quadrature_check, "subsamples": s.levels[-1]["subsamples"],
+            "quadrature": s.levels[-1].get("quadrature"), "reasons": list(s.reasons),
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
                         "lam": [x["lam"] for x in lv["solves"]],
                         # chi^2 + prior removed by each solve's last step (>> 1: not converged)
@@ -143,10 +147,13 @@ def main(argv=None):
     ap.add_argument("--max-iter", type=int, default=12, help="LM iterations per surface level")
     ap.add_argument("--albedo-prior", type=float, default=0.0, help="the surface fit's albedo_prior "
                     "(the albedo's gradient penalty relative to the depth's; needs --prior)")
+    ap.add_argument("--no-quadrature-check", action="store_true", help="the surface fit keeps the "
+                    "sub-samples of its size rule (SurfaceSettings.quadrature_check off): what the check costs")
     ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.surface_one is not None:
-        print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter, a.albedo_prior)))
+        print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter, a.albedo_prior,
+                                     quadrature_check=not a.no_quadrature_check), default=float))
         return
     rows = []
     folder = data_dir() / "otoole2018_confocal"
@@ -193,6 +200,7 @@ def main(argv=None):
             # (CasADi's buffers included)
             out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior,
                                   "--max-iter", str(a.max_iter), "--albedo-prior", str(a.albedo_prior)]
+                                 + (["--no-quadrature-check"] if a.no_quadrature_check else [])
                                  + ([] if a.threads is None else ["--threads", str(a.threads)]),
                                  capture_output=True, text=True)
             if out.returncode != 0:

@@ -47,10 +47,9 @@ Steps
    likelihood-ratio test (``levels[-1]["cut_cells"]``). Seed 310 of the study (a square tilted
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
    std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std.
-   4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): the model with one
-   more sub-sample per cell side is linearised at the solution; when its Gauss-Newton step moves
-   a lit node by half its std or more the level is solved again with it (up to 4 x 4,
-   ``levels[-1]["quadrature"]``), else a reason.
+   4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): while one more
+   sub-sample per cell side changes a lit node's solution (to first order) by half its std or
+   more, the level is solved again with it (up to 4 x 4, then a reason; ``["quadrature"]``).
    The result is the last level's: a coarser level cut by its iteration limit (or with a
    response parameter at a bound) is recorded in ``extras["notes"]``, not in ``reasons`` (the
    last level refits every unknown and is judged by its own solve and the checks below). The
@@ -391,14 +390,15 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             # is q x q sub-samples per cell fine enough for this noise? (step 4d, ``quadrature.py``)
             qd = refine_quadrature(state, res, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve)
             info["quadrature"] = qd["info"]
-            if qd["model"] is not model:
+            for k, out in enumerate(qd["solves"]):
+                record(out, subsamples=qd["info"][k]["q_next"], **({"offset_nodes": int(model.K)} if model.K else {}))
+            if qd["solves"]:
                 model, bounds, res, lin = qd["model"], qd["bounds"], qd["res"], None
                 state = res["state"]
                 info["subsamples"] = int(model.sub)
-                record(res, subsamples=int(model.sub), **({"offset_nodes": int(model.K)} if model.K else {}))
             if not qd["converged"]:
                 reasons.append(f"level {li} ({n}x{n}): the cells' integration is not converged at {model.sub} x "
-                               f"{model.sub} sub-samples (the model with one more moves a lit node by "
+                               f"{model.sub} sub-samples (one more changes a lit node's solution by "
                                f"{qd['info'][-1]['max_std']:.3g} std): the numbers hold its error")
         info.update({"lam": lam, "status": res["status"], "success": res["success"],
                      "wall_time_s": time.perf_counter() - t_lvl})

@@ -14,10 +14,11 @@ beyond 4 std at chi2/dof 1.027 (passed); with q = 2, 0.049 mm (rms 0.097); with 
 (rms 0.079).
 
 So the fit asks the data: the models with q and q + 1 sub-samples are linearised at the
-solution and their undamped Gauss-Newton steps taken (with the level's prior and bounds). When
-the two steps differ on a lit node's depth or albedo by ``CONVERGED_STD`` of its std or more, the
-level is solved again with q + 1 from the solution, and asked again, up to ``Q_MAX``; a
-difference that large at ``Q_MAX`` is a reason (the fit is not converged in its own model).
+solution, and the first-order change of the solution from one to the other, A^-1 (g_{q+1} -
+g_q) (A the Gauss-Newton matrix with the prior), is taken in units of the std. When it moves a
+lit node's depth or albedo by ``CONVERGED_STD`` of its std or more, the level is solved again
+with q + 1 from the solution, and asked again, up to ``Q_MAX``; a change that large at ``Q_MAX``
+is a reason (the fit is not converged in its own model).
 """
 from __future__ import annotations
 
@@ -43,20 +44,22 @@ def _newton(model, state, y, wgt, lam, R) -> tuple[dict, np.ndarray, np.ndarray]
 
 
 def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, lit) -> tuple[dict, dict]:
-    """How far the finer model's undamped Gauss-Newton step from ``state`` differs from the
-    coarser's, on the unknowns the finer one moves (``lm._free``), in units of the finer model's
-    (inflated) Fisher std: its largest for a lit node's depth or albedo (``max_std``) and for any
-    node (``max_std_any``). The difference, not the finer step alone: a solve that stopped with its
-    step below its std (``tol_chi2``) leaves a remaining step of up to about one std in either
-    model, which is no error of the integration. Also returns the finer model's linearisation."""
+    """The first-order change of the solution from the coarser model to the finer one, at
+    ``state``: A^-1 (g_fine - g_coarse) on the unknowns the finer model's Gauss-Newton step moves
+    (``lm._free``), A the finer model's Gauss-Newton matrix with the prior, g the gradients of
+    chi^2 / 2 (J^T W (m - y): where the models agree it is zero, whatever the state). In units
+    of the finer model's (inflated) Fisher std: its largest for a lit node's depth or albedo
+    (``max_std``) and for any node (``max_std_any``). Not the finer model's step alone: a solve
+    that stopped with its step below its std (``tol_chi2``), or at its iteration limit, leaves a
+    remaining step that is no error of the integration. Also returns the finer linearisation."""
     lin, A, g = _newton(fine, state, y, wgt, lam, R)
-    _, A0, g0 = _newton(coarse, state, y, wgt, lam, R)
+    g0 = coarse.linearise(state, y, wgt, dtype=np.float64, need_h=False)["g"]
     th = fine.pack(state)
-    fi, step = _free(fine, state, th, A, g, bounds)
+    fi, _ = _free(fine, state, th, A, g, bounds, need_step=False)
     N = fine.N
     diff = np.zeros(th.size)
     if len(fi):
-        diff[fi] = step - np.linalg.solve(A0[np.ix_(fi, fi)], g0[fi])
+        diff[fi] = np.linalg.solve(A[np.ix_(fi, fi)], lin["g"][fi] - g0[fi])
     var = np.clip(np.diag(np.linalg.inv(A)), 0.0, None) * max(1.0, lin["chi2"] / max(y.size - th.size, 1))
     rz = np.abs(diff[:N]) / np.maximum(np.sqrt(var[:N]), 1e-300)
     rr = np.abs(diff[N:2 * N]) / np.maximum(np.sqrt(var[N:2 * N]), 1e-300)
@@ -71,11 +74,12 @@ def refine_quadrature(state, res: dict, model, bounds, y, wgt, lam, R, make_mode
     state, lin0)`` as the level's own. The lit nodes are those with albedo above a tenth of the
     largest (the mask's rule before its std test).
 
-    Returns dict ``info`` (a list of checks: q, q + 1, the two steps' largest difference on a lit
-    node in std ``max_std``, whether the level was solved again and that solve's status, iterations and
+    Returns dict ``info`` (a list of checks: q, q + 1, the change's largest on a lit node in std
+    ``max_std``, whether the level was solved again and that solve's status, iterations and
     F), ``converged`` (False when the check at ``q_max`` still moves a lit node by
-    ``CONVERGED_STD`` or more) and the final ``model``, ``bounds``, ``res``."""
-    checks = []
+    ``CONVERGED_STD`` or more), the final ``model``, ``bounds``, ``res``, and ``solves`` (each
+    re-solve's result, in order)."""
+    checks, solves = [], []
     converged = True
     while True:
         rho = np.asarray(state.rho, float)
@@ -98,4 +102,6 @@ def refine_quadrature(state, res: dict, model, bounds, y, wgt, lam, R, make_mode
         checks.append(rec | {"solved": True, "status": out["status"], "iterations": out["iterations"],
                              "f": float(out["f"]), "f_before": float(res["f"])})
         model, bounds, res, state = m2, b2, out, out["state"]
-    return {"info": checks, "converged": converged, "model": model, "bounds": bounds, "res": res}
+        solves.append(out)
+    return {"info": checks, "converged": converged, "model": model, "bounds": bounds, "res": res,
+            "solves": solves}

@@ -69,9 +69,9 @@ class SurfaceSettings:
     #: height fields (no difference operator or prior crosses their border) and the last level is
     #: solved again, kept when it ends lower; False: one height field over the whole grid
     split_steps: bool = True
-    #: after the last level's solves, the model with one more sub-sample per cell side is asked
-    #: whether it moves a lit node by half its std or more; if so the level is solved again with
-    #: it, up to 4 (``quadrature.py``); False: the rule of ``subsamples`` alone
+    #: after the last level's solves, one more sub-sample per cell side is asked whether it
+    #: changes a lit node's solution (to first order) by half its std or more; if so the level is
+    #: solved again with it, up to 4 (``quadrature.py``); False: the rule of ``subsamples`` alone
     quadrature_check: bool = True
     #: largest depth change of one solver step (metres); None: 1.5 x max(bin, sigma0)
     z_slack: float | None = None
