@@ -109,3 +109,29 @@ def test_a_depth_step_between_two_parts_of_the_mask_is_found_and_a_steep_plane_i
     one[2:6, 1:7] = True
     assert depth_step(one, 0.37 + 1.5 * cols * 0.038, sd, 0.038, 0.05) is None
     assert depth_step(m, two, np.full((8, 8), 0.03), 0.038, 0.05) is None
+
+
+def test_one_far_node_with_a_large_albedo_does_not_set_the_mask_scale():
+    """The mask's brightness rule takes a tenth of the 90th percentile of the significant albedos,
+    not of the largest: on the Stanford dot chart a grid corner fitted 0.36 m behind the dots
+    traded albedo for its range (1/d^4) and, as the largest, dropped all but 5 nodes."""
+    from stircasadi.nlos.surface.mask import bright_nodes, surface_mask
+
+    rho = np.full((6, 6), 0.02)                 # not significant (std 0.05)
+    sd = np.full((6, 6), 0.05)
+    rho[1:5, 1:5] = 1.0                         # the surface: 16 nodes at 20 std
+    rho[0, 0], sd[0, 0] = 30.0, 0.5             # one far node, 60 std, 30 times the surface
+    rho[5, 5], sd[5, 5] = 0.2, 0.01             # a dim part of the surface, a fifth: kept
+    rho[5, 0], sd[5, 0] = 0.05, 0.01            # significant but a twentieth: not bright
+    b = bright_nodes(rho, sd, 3.0)
+    expect = np.zeros((6, 6), bool)
+    expect[1:5, 1:5] = expect[0, 0] = expect[5, 5] = True
+    np.testing.assert_array_equal(b, expect)
+    assert not (rho > 0.1 * rho.max())[1:5, 1:5].any()     # the largest's rule dropped the surface
+    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+    g = DepthGrid(np.linspace(-0.1, 0.1, 6), np.linspace(-0.1, 0.1, 6), frame)
+    m = surface_mask(g, rho.ravel(), sd.ravel(), np.diag(sd.ravel() ** 2), 3.0)
+    np.testing.assert_array_equal(m.reshape(6, 6), expect)
+    # nothing significant: the scale is that of the positive albedos
+    np.testing.assert_array_equal(bright_nodes(np.array([0.0, 1.0, 0.5, 0.01]), np.ones(4), 3.0),
+                                  [False, True, True, False])

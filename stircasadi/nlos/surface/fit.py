@@ -61,9 +61,9 @@ Steps
 5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
    operator), std maps of depth, albedo and normal components (normals linearised through the
    depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
-   is above a tenth of the largest and ``mask_z`` std above 0, on its own or as the mean of the
-   node's 3 x 3 neighbourhood (``mask.surface_mask``: on grids finer than the data resolve each node's own
-   std is large, their mean's is not). The edge map (``mask.edge_map``, ``SurfaceResult.edge``) marks
+   is above a tenth of the surface's bright one (``mask.bright_nodes``) and ``mask_z`` std above
+   0, on its own or as the mean of the node's 3 x 3 neighbourhood (``mask.surface_mask``: on grids
+   finer than the data resolve each node's own std is large, their mean's is not). The edge map (``mask.edge_map``, ``SurfaceResult.edge``) marks
    the mask nodes whose cell the surface's edge may cut and their eight neighbours: each cell
    is modelled as uniformly covered, and where the edge cuts one its neighbours' albedos and
    depths trade with it, an error the Fisher std do not hold (a note in ``extras["notes"]``;
@@ -388,7 +388,8 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                     record(res, offset_nodes=int(model.K))
         if last and st.quadrature_check:
             # is q x q sub-samples per cell fine enough for this noise? (step 4d, ``quadrature.py``)
-            qd = refine_quadrature(state, res, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve)
+            qd = refine_quadrature(state, res, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve,
+                                  z=st.mask_z)
             info["quadrature"] = qd["info"]
             for k, out in enumerate(qd["solves"]):
                 record(out, subsamples=qd["info"][k]["q_next"], **({"offset_nodes": int(model.K)} if model.K else {}))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .lm import CONVERGED_STD, _free, prior_gradient
+from .mask import bright_nodes
 
 __all__ = ["Q_MAX", "refine_quadrature"]
 
@@ -43,7 +44,7 @@ def _newton(model, state, y, wgt, lam, R) -> tuple[dict, np.ndarray, np.ndarray]
     return lin, A, prior_gradient(lin["g"], state, lam, R)
 
 
-def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, lit) -> tuple[dict, dict]:
+def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, z) -> tuple[dict, dict]:
     """The first-order change of the solution from the coarser model to the finer one, at
     ``state``: A^-1 (g_fine - g_coarse) on the unknowns the finer model's Gauss-Newton step moves
     (``lm._free``), A the finer model's Gauss-Newton matrix with the prior, g the gradients of
@@ -51,7 +52,9 @@ def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, lit) -> tuple[di
     of the finer model's (inflated) Fisher std: its largest for a lit node's depth or albedo
     (``max_std``) and for any node (``max_std_any``). Not the finer model's step alone: a solve
     that stopped with its step below its std (``tol_chi2``), or at its iteration limit, leaves a
-    remaining step that is no error of the integration. Also returns the finer linearisation."""
+    remaining step that is no error of the integration. The lit nodes: ``mask.bright_nodes`` with
+    these std and ``z`` (the mask's rule before its significance test). Also returns the finer
+    linearisation."""
     lin, A, g = _newton(fine, state, y, wgt, lam, R)
     g0 = coarse.linearise(state, y, wgt, dtype=np.float64, need_h=False)["g"]
     th = fine.pack(state)
@@ -63,16 +66,17 @@ def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, lit) -> tuple[di
     var = np.clip(np.diag(np.linalg.inv(A)), 0.0, None) * max(1.0, lin["chi2"] / max(y.size - th.size, 1))
     rz = np.abs(diff[:N]) / np.maximum(np.sqrt(var[:N]), 1e-300)
     rr = np.abs(diff[N:2 * N]) / np.maximum(np.sqrt(var[N:2 * N]), 1e-300)
+    lit = bright_nodes(state.rho, np.sqrt(var[N:2 * N]), z)
     both = np.maximum(rz, rr)
     return {"max_std": float(both[lit].max()) if lit.any() else None, "max_std_any": float(both.max())}, lin
 
 
 def refine_quadrature(state, res: dict, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve,
-                      q_max: int = Q_MAX) -> dict:
+                      q_max: int = Q_MAX, z: float = 3.0) -> dict:
     """Step 4d (module docstring) from the level's solution ``state`` (``res``) of ``model`` with
     ``bounds``; ``make_model(nodes, sub=q)``, ``make_bounds(model)`` and ``solve(model, bounds,
-    state, lin0)`` as the level's own. The lit nodes are those with albedo above a tenth of the
-    largest (the mask's rule before its std test).
+    state, lin0)`` as the level's own; ``z`` the mask's significance (``SurfaceSettings.mask_z``)
+    for its lit nodes (``mask.bright_nodes``).
 
     Returns dict ``info`` (a list of checks: q, q + 1, the change's largest on a lit node in std
     ``max_std``, whether the level was solved again and that solve's status, iterations and
@@ -82,13 +86,11 @@ def refine_quadrature(state, res: dict, model, bounds, y, wgt, lam, R, make_mode
     checks, solves = [], []
     converged = True
     while True:
-        rho = np.asarray(state.rho, float)
-        lit = rho > 0.1 * max(float(rho.max()), 1e-300)
         q = int(model.sub)
         nodes = model.onodes if model.K else None
         m2 = make_model(nodes, sub=q + 1)
         b2 = make_bounds(m2)
-        rs, lin = _change_in_std(m2, model, state, y, wgt, lam, R, b2, lit)
+        rs, lin = _change_in_std(m2, model, state, y, wgt, lam, R, b2, z)
         worst = rs["max_std"]
         rec = {"q": q, "q_next": q + 1} | rs
         if worst is None or worst < CONVERGED_STD:

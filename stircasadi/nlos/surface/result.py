@@ -14,7 +14,8 @@ __all__ = ["SurfaceResult"]
 class SurfaceResult:
     """Maps on ``grid`` (ny, nx): depth along the frame's w, albedo, unit normals (ny, nx, 3) facing
     the relay, their one-sigma Fisher std (inflated by sqrt(chi2/dof) when above 1), the mask of
-    nodes where the data see a surface (albedo at least a tenth of the largest and significant at
+    nodes where the data see a surface (albedo at least a tenth of the surface's bright albedo,
+    ``mask.bright_nodes``, and significant at
     ``mask_z`` sigma on its own or as its 3 x 3 neighbourhood's mean) and the fit's
     numbers: the response (kind, Gaussian width ``sigma_irf``, exponential ``tail`` of an emg,
     its FWHM), background, gain, prior weight and how it was chosen, the whitened residual
