@@ -126,6 +126,8 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
             "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
             "quadrature_check": quadrature_check, "subsamples": s.levels[-1]["subsamples"],
             "quadrature": s.levels[-1].get("quadrature"), "reasons": list(s.reasons),
+            # steps 4b and 4c: nodes pruned, the centroids' test and what it was taken against
+            "pruned": s.levels[-1].get("pruned"), "cut_cells": s.levels[-1].get("cut_cells"),
             "levels": [{"nodes": lv["nodes"], "iterations": [x["iterations"] for x in lv["solves"]],
                         "lam": [x["lam"] for x in lv["solves"]],
                         # chi^2 + prior removed by each solve's last step (>> 1: not converged)

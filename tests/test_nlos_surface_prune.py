@@ -136,3 +136,48 @@ def test_nested_likelihood_ratio_by_hand():
     assert lr == pytest.approx(4.0, rel=1e-15) and need == pytest.approx(-2 * np.log(0.01), rel=1e-12)
     lr, need = nested_lr(10.0, 4.0, 50.0, 100, 1, 0.05)
     assert lr == pytest.approx(12.0, rel=1e-15) and need == pytest.approx(3.841459, rel=1e-6)
+
+
+@pytest.mark.parametrize("first_iterations", [3, 4])
+def test_an_early_stopped_pruned_solve_decides_as_a_finished_one(first_iterations):
+    """``prune_nodes(early=True)`` (step 4b with step 4c to follow): the pruned solve stops
+    ("Target reached") once its F is as low as the full solve's, where that solve stopped at its
+    iteration limit short of its optimum (3 iterations from depths 2 mm off and albedos 0.5 / 0.1:
+    F 894.7; the pruned optimum 888.6 lies below it); the ratio is then at most 0 and only falls
+    as the solve goes on, so the decision is the finished pruned solve's (kept, the same nodes), in
+    fewer iterations (measured 1 against 15), and the solve continued from where it stopped ends
+    at the finished solve's F. After 4 iterations the full solve's F (886.9) is below the pruned
+    optimum: the early solve never reaches it and is the finished one (settled, the same F)."""
+    model, lit, z, y, wgt = _three_lit()
+    st0 = SurfaceState(z.copy() + 0.002, np.where(lit, 0.5, 0.1), 0.006, 0.0, (), 0.0)
+    R = np.zeros((model.N, model.N))
+    outs, helds = {}, {}
+    for early in (False, True):
+        held = {"m": np.zeros(model.N, bool)}
+
+        def make_bounds(m, held=held):
+            b = Bounds(m, 1.0, (0.001, 0.05), (0.0, 0.1))
+            b.hi[m.N:2 * m.N][held["m"]] = 0.0
+            return b
+
+        def solve(m, b, s, f_stop=None, it=60):
+            return solve_lm(m, y, wgt, s, 0.0, R, b, 0.01, it, 1e-12, np.float64, f_stop=f_stop)
+
+        res = solve(model, make_bounds(model), st0, it=first_iterations)
+        assert res["status"].startswith("Maximum")
+        lin = model.linearise(res["state"], y, wgt, dtype=np.float64)
+        outs[early] = prune_nodes(res["state"], res, lin, y, wgt, model, lambda m, h=held: h.__setitem__("m", m),
+                                  make_bounds, solve, early=early)
+        helds[early] = held["m"].copy()
+    full, out = outs[False]["info"], outs[True]["info"]
+    assert full["kept"] and out["kept"] and np.array_equal(helds[True], helds[False]) and helds[True].any()
+    assert full["settled"] and out["lr"] <= out["threshold"]
+    if first_iterations == 3:
+        assert out["status"] == "Target reached" and not out["settled"]
+        assert out["iterations"] < full["iterations"] and out["lr"] <= 0.0
+        on = solve_lm(model, y, wgt, outs[True]["res"]["state"], 0.0, R, outs[True]["bounds"], 0.01, 60, 1e-12,
+                      np.float64)
+        assert on["f"] == pytest.approx(outs[False]["res"]["f"], rel=1e-9)
+    else:
+        assert out["settled"] and out["iterations"] == full["iterations"]
+        assert outs[True]["res"]["f"] == outs[False]["res"]["f"]

@@ -41,10 +41,15 @@ Steps
    and the last level is solved again from its solution, kept by a likelihood-ratio test
    (``levels[-1]["pruned"]``). Off-surface nodes that fit noise with barely determined depths
    had kept LM's steps in the response's nonlinear range (actual decrease 0.05-0.4 of the
-   predicted) and 10 of 37 single-surface held-out scenes at the iteration limit.
+   predicted) and 10 of 37 single-surface held-out scenes at the iteration limit. With 4c to
+   follow, the pruned solve stops once its F is as low as the first solve's (the ratio at most 0:
+   kept; only where the first solve stopped at its iteration limit) and 4c's solve goes on from
+   there; it is solved on only where 4c's centroids are not kept.
    4c. Cut cells (``SurfaceSettings.edge_offsets``, ``cuts.py``): the last level is solved
    again with the cells the surface's edge cuts given a free in-plane centroid each, kept by a
-   likelihood-ratio test (``levels[-1]["cut_cells"]``). Seed 310 of the study (a square tilted
+   likelihood-ratio test (``levels[-1]["cut_cells"]``; against the pruned model's optimum
+   estimated by the quadratic model where 4b stopped early, ``cuts.restricted_optimum``, and its
+   settled solve where the estimate does not keep them). Seed 310 of the study (a square tilted
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
    std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std.
    4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): while one more
@@ -100,6 +105,7 @@ from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid, normal_std
+from .start import extent as _extent, initial as _initial
 from .prior import GCV_PROBES, _choose_lambda, prior_operator  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .quadrature import refine_quadrature
@@ -135,35 +141,6 @@ def noise_weights(y: np.ndarray, sigma, override: float | None = None) -> tuple[
     s = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
     s = max(s, 1e-6 * float(np.max(np.abs(y))), 1e-300)
     return np.full(y.shape, 1.0 / s ** 2), "MAD of first differences"
-
-
-def _support(maps: Maps, st: SurfaceSettings) -> np.ndarray:
-    """Columns of the initialiser that hold a surface: its mask or an albedo of at least
-    ``init_fraction`` of the largest (a volume's mask keeps only columns far above the median,
-    which on a scan full of returns leaves most of the object out)."""
-    return maps.mask | (maps.albedo >= st.init_fraction * max(float(maps.albedo.max()), 1e-300))
-
-
-def _initial(maps: Maps, grid: DepthGrid, st: SurfaceSettings):
-    sup = _support(maps, st)
-    d = np.where(sup, maps.depth, np.median(maps.depth[sup]) if sup.any() else np.median(maps.depth))
-    src = DepthGrid(maps.x, maps.y, maps.frame)
-    z0 = src.resample(d, grid)
-    a0 = src.resample(np.where(sup, maps.albedo, 0.05 * maps.albedo.max()), grid)
-    return z0, np.clip(a0, 0.0, None)
-
-
-def _extent(maps: Maps, st: SurfaceSettings):
-    if st.extent is not None:
-        return st.extent
-    m = _support(maps, st)
-    m = m if m.any() else np.ones_like(m)
-    iy, ix = np.nonzero(m)
-    x0, x1 = maps.x[ix.min()], maps.x[ix.max()]
-    y0, y1 = maps.y[iy.min()], maps.y[iy.max()]
-    gx = max(st.margin * (x1 - x0), maps.x[1] - maps.x[0])
-    gy = max(st.margin * (y1 - y0), maps.y[1] - maps.y[0])
-    return (x0 - gx, x1 + gx, y0 - gy, y1 + gy)
 
 
 def _response0(relay: Relay, st: SurfaceSettings, gate):
@@ -271,10 +248,10 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             b.hi[m.N:2 * m.N][held["pruned"]] = 0.0
             return b
 
-        def solve(m, b, s0, lin0=None):        # the level's solver (``lin0``: LM's first linearisation)
+        def solve(m, b, s0, lin0=None, f_stop=None):   # the level's solver (``lin0``: LM's first linearisation)
             if st.solver == "lm":
                 return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, lin0=lin0,
-                                tol_chi2=st.tol_chi2)
+                                tol_chi2=st.tol_chi2, f_stop=f_stop)
             return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
 
         def record(res, **more):
@@ -361,12 +338,15 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                     record(res, parts=info["steps"]["parts"])
                 else:
                     level["grid"], R = grid, R0
+        f_unpruned = res["f"]      # (the pruned model's optimum lies above this solve's: step 4c's floor)
         if last and st.prune:
             # nodes off the surface whose albedos fit noise: pruned and the level solved again
             # from its solution, kept by a likelihood-ratio test (step 4b, ``prune.py``)
             lin_p = lin if lin is not None else model.linearise(state, y, wgt, dtype=dtype)
+            # (with step 4c to follow, the pruned solve stops once its F is the first solve's: 4c's
+            # solve goes on from there, and the pruned one is settled only where 4c's are not kept)
             pr = prune_nodes(state, res, lin_p, y, wgt, model, lambda m: held.__setitem__("pruned", m),
-                             make_bounds, solve)
+                             make_bounds, solve, early=st.edge_offsets and st.solver == "lm")
             if pr is not None:
                 info["pruned"] = pr["info"]
                 _log.info("level %d (%dx%d): pruned %s", li, n, n, pr["info"])
@@ -375,17 +355,32 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                     res, lin = pr["res"], None
                     state = res["state"]
                     record(res, pruned=int(pr["info"]["nodes"]))
+        unsettled = bool(last and st.prune and pr is not None and pr["info"]["kept"] and not pr["info"]["settled"])
+        pm = (model, bounds)
+
+        def settle():          # step 4b's pruned solve, solved on from where it stopped
+            out = solve(*pm, res["state"])
+            record(out, pruned=int(pr["info"]["nodes"]), settled=True)
+            return out
         if last and st.edge_offsets:
             # the cells the edge cuts emit from their covered part: their centroids become
             # unknowns and the level is solved again from its solution (step 4c, ``cuts.py``)
-            cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve)
+            cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve,
+                                settle=settle if unsettled else None,
+                                quad={"lam": lam, "R": R, "dtype": dtype, "floor": f_unpruned})
             if cut is not None:
                 info["cut_cells"] = cut["info"]
                 _log.info("level %d (%dx%d): %s", li, n, n, cut["info"])
+                if cut["restricted"] is not None:
+                    res, unsettled = cut["restricted"], False
+                    state = res["state"]
                 if cut["info"]["kept"]:
-                    model, bounds, res, lin = cut["model"], cut["bounds"], cut["res"], None
+                    model, bounds, res, lin, unsettled = cut["model"], cut["bounds"], cut["res"], None, False
                     state = res["state"]
                     record(res, offset_nodes=int(model.K))
+        if unsettled:
+            res = settle()
+            state = res["state"]
         if last and st.quadrature_check:
             # is q x q sub-samples per cell fine enough for this noise? (step 4d, ``quadrature.py``)
             qd = refine_quadrature(state, res, model, bounds, y, wgt, lam, R, make_model, make_bounds, solve,

@@ -141,7 +141,7 @@ def prior_gradient(g: np.ndarray, st: SurfaceState, lam: float, R_prior) -> np.n
 
 def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior, bounds: Bounds,
              slack: float, max_iter: int = 30, tol: float = 1e-6, dtype=np.float32, lin0: dict | None = None,
-             tol_chi2: float = 0.0) -> dict:
+             tol_chi2: float = 0.0, f_stop: float | None = None) -> dict:
     """Run LM from ``st`` on chi2 / 2 + lam / 2 v^T R_prior v, v the first M = R_prior.shape[0]
     unknowns (the depths, or the depths then the albedos: ``prior_vector``). Returns dict(state,
     status, iterations, success, f, at_bound,
@@ -161,7 +161,10 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
     ``history[-1]["newton"]``), checked on the next linearisation: a damped step is short
     wherever the damping is large, whatever the distance left (on a seeded twin, a tilted square
     behind a paired relay at 0.3 % noise, LM stopped on damped steps with errors of 3-5 std
-    left)."""
+    left).
+
+    ``f_stop``: the solve also stops ("Target reached", not a success) once a step brings F to
+    ``f_stop`` or below (for a caller whose decision needs only F that low: F only falls further)."""
     N = model.N
     prior = lam > 0
     M = R_prior.shape[0]   # the prior acts on the depths (M = N) or on depths and albedos (2 N)
@@ -234,6 +237,9 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
             break
         if rel < tol and tol_chi2 <= 0:
             status = "Converged"
+            break
+        if f_stop is not None and f <= f_stop:
+            status = "Target reached"
             break
         if small or rel < tol:
             # checked on the next linearisation (above): a relative decrease below ``tol`` is

@@ -21,7 +21,13 @@ is kept unless the likelihood ratio of the two nested models exceeds the chi^2 q
 unknowns removed at p = ``PRUNE_P`` (the pruned nodes then explain signal jointly: the full
 model stands; ``lm.nested_lr``, the full model's inflation). The ratio uses the full model's solve as it stopped; where that solve had not
 converged its chi^2 is above its optimum and the ratio is too small by the decrease left (the
-remaining step's, a few units on the study's scenes, against thresholds of ~100-300).
+remaining step's, a few units on the study's scenes, against thresholds of ~100-300). With
+``early`` the pruned solve stops once its F is as low as the full solve's (the ratio at most 0,
+and it only falls as the solve goes on, so the decision is a finished solve's): that happens only
+where the full solve stopped at its iteration limit; the caller (step 4c) solves on from there. A
+target at the test's threshold instead (F_full + threshold x inflation / 2) stopped seed 808 of the
+study after one iteration, 4c's solve then ended in a worse optimum (F 3607.8 against 3598.7) and
+the fit SILENT-WRONG.
 """
 from __future__ import annotations
 
@@ -49,11 +55,16 @@ def node_evidence(rho: np.ndarray, g: np.ndarray, h_diag: np.ndarray) -> np.ndar
     return np.maximum(rho * rho * np.asarray(h_diag, float) - 2.0 * rho * np.asarray(g, float), 0.0)
 
 
-def prune_nodes(state, res: dict, lin: dict, y, wgt, model, set_pruned, make_bounds, solve) -> dict | None:
+def prune_nodes(state, res: dict, lin: dict, y, wgt, model, set_pruned, make_bounds, solve,
+                early: bool = False) -> dict | None:
     """The level solved again with the nodes of no evidence pruned, from ``state`` (the solution
     ``res`` of the level's own solve; ``lin``: ``model.linearise`` there, with H).
     ``set_pruned(mask)``: makes ``make_bounds`` hold those nodes' albedos at zero;
-    ``solve(model, bounds, state)``: the level's solver.
+    ``solve(model, bounds, state)``: the level's solver. ``early``: the pruned solve stops once
+    its F is as low as the full solve's (``solve(..., f_stop=F)``): the ratio is then at most 0
+    and only falls as the solve goes on, so the decision is a finished solve's; it stops only
+    where the full solve had not converged, leaving its state unsettled (``info["settled"]``
+    False: the caller solves on from it, step 4c).
 
     Returns None (no node to prune), or a dict: ``info`` (``nodes`` pruned, ``lit`` of them with
     an albedo above zero, the likelihood ratio ``lr``, its ``threshold`` at ``p``, ``kept``, the
@@ -75,13 +86,17 @@ def prune_nodes(state, res: dict, lin: dict, y, wgt, model, set_pruned, make_bou
     removed = int(np.sum(cut & (state.rho > 0))) + int(np.sum(seen0 & ~model.seen(rho)))
     set_pruned(cut)
     bounds = make_bounds(model)
-    out = solve(model, bounds, s0)
+    if early:       # at the full solve's F: lr <= 0, and the pruned solve has caught up with it
+        out = solve(model, bounds, s0, f_stop=float(res["f"]))
+    else:
+        out = solve(model, bounds, s0)
     lr, need = nested_lr(out["f"], res["f"], lin["chi2"], n_y - model.npar, removed, PRUNE_P)
     kept = bool(lr <= need)
     if not kept:
         set_pruned(np.zeros(N, bool))
     info = {"nodes": int(cut.sum()), "lit": int(np.sum(cut & (state.rho > 0))), "removed_unknowns": removed,
             "lr": lr, "threshold": need, "p": PRUNE_P, "node_threshold": node_thr, "kept": kept,
-            "evidence_max_pruned": float(ev[cut].max()), "status": out["status"], "iterations": out["iterations"]}
+            "evidence_max_pruned": float(ev[cut].max()), "status": out["status"], "iterations": out["iterations"],
+            "settled": out["status"] != "Target reached"}
     return {"info": info, "res": out, "bounds": bounds if kept else make_bounds(model),
             "mask": cut if kept else np.zeros(N, bool)}
