@@ -86,6 +86,10 @@ def run_one(seed: int, nodes: int, levels: int, prior, noise=None, **settings) -
             "reasons": list(res.reasons),
             "cut_cells": len((res.extras.get("cell_offsets") or {}).get("nodes", [])),
             "pruned": pruned.get("nodes", 0) if pruned.get("kept") else 0,
+            # step 4b stopped once caught up with the first solve (not settled), and what step 4c's
+            # test was taken against (``solve`` or ``estimate``)
+            "pruned_settled": pruned.get("settled", True),
+            "cut_reference": (res.levels[-1].get("cut_cells") or {}).get("reference"),
             "split": steps.get("parts", 0) if steps.get("kept") else 0,
             "subsamples": int(res.levels[-1]["subsamples"]),
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
