@@ -30,7 +30,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .lm import _damping, _free, nested_lr, prior_gradient, prior_vector
+from .lm import _damping, _free, nested_lr, prior_gradient, prior_penalty
 from .mask import cut_cells
 
 __all__ = ["CUT_P", "fit_cut_cells", "restricted_optimum"]
@@ -49,11 +49,9 @@ def restricted_optimum(model, bounds, lin: dict, state, lam: float, R) -> float:
     overpromises, high where it underpromises."""
     N, M = model.N, R.shape[0]
     H, g = np.array(lin["H"], float), prior_gradient(lin["g"], state, lam, R)
-    f = 0.5 * float(lin["chi2"])
+    f = 0.5 * float(lin["chi2"]) + prior_penalty(state, lam, R)
     if lam > 0:
-        v = prior_vector(state, M)
         H[:M, :M] += lam * R
-        f += 0.5 * lam * float(v @ (R @ v))
     lo, hi = bounds.lo.copy(), bounds.hi.copy()
     if model.K:
         lo[-2 * model.K:] = hi[-2 * model.K:] = 0.0     # the centroids held: not free

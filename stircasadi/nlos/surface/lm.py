@@ -22,7 +22,7 @@ from scipy.stats import chi2 as _chi2_dist
 
 from .model import SurfaceModel, SurfaceState
 
-__all__ = ["solve_lm", "Bounds", "last_decrease", "nested_lr", "remaining_step", "CONVERGED_STD"]
+__all__ = ["solve_lm", "Bounds", "last_decrease", "nested_lr", "prior_penalty", "remaining_step", "CONVERGED_STD"]
 
 
 class Bounds:
@@ -129,6 +129,14 @@ def prior_vector(st: SurfaceState, M: int) -> np.ndarray:
     return st.z if M == len(st.z) else np.concatenate([st.z, st.rho])
 
 
+def prior_penalty(st: SurfaceState, lam: float, R_prior) -> float:
+    """The prior's share of F, lam / 2 v^T R v (``prior_vector``; 0 without a prior)."""
+    if not lam > 0:
+        return 0.0
+    v = prior_vector(st, R_prior.shape[0])
+    return 0.5 * lam * float(v @ (R_prior @ v))
+
+
 def prior_gradient(g: np.ndarray, st: SurfaceState, lam: float, R_prior) -> np.ndarray:
     """A copy of the data's gradient ``g`` (of chi^2 / 2) with the prior's, lam R v, added on the
     unknowns it acts on (``prior_vector``)."""
@@ -170,10 +178,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
     M = R_prior.shape[0]   # the prior acts on the depths (M = N) or on depths and albedos (2 N)
 
     def pen(s):
-        if not prior:
-            return 0.0
-        v = prior_vector(s, M)
-        return 0.5 * lam * float(v @ (R_prior @ v))
+        return prior_penalty(s, lam, R_prior)
 
     th = bounds.project(model.pack(st))
     st = model.unpack(th, st)
