@@ -1,14 +1,15 @@
 """Coverage study of the hidden-surface fit on seeded random twins no one tuned it on.
 
     python benchmarks/surface_coverage.py [N_SCENES] [FIRST_SEED] [--nodes=12] [--levels=2]
-                                          [--prior=none] [--noise=REL]
+                                          [--prior=none] [--noise=REL] [--FIELD=VALUE ...]
     python benchmarks/surface_coverage.py --rescore=benchmarks/results/surface_coverage_0_23.json
 
 Each scene is ``stircasadi.testing.random_surface_twin(seed)`` (a square, disk, L-shaped letter,
 spherical cap or two bars at two depths; depth, tilt, size, albedo, confocal or paired relay and
 noise level all drawn from the seed; ``--noise`` sets one relative level for every scene instead, the
 rest still drawn: systematic errors of the model hide under the drawn noise and not under a low
-one), rendered by ``transport.simulate``. The fit sees only the
+one; any other ``--FIELD=VALUE`` sets that field of ``SurfaceSettings``, e.g. ``--edge_extent=1``),
+rendered by ``transport.simulate``. The fit sees only the
 capture and the wall's known albedo (absolute gain), by the default route a user runs: the
 relay from the capture, the volumetric initialiser (LCT confocal, filtered backprojection
 otherwise), ``fit_surface`` with its default extent (the initialiser's support) and levels.
@@ -90,10 +91,25 @@ def run_one(seed: int, nodes: int, levels: int, prior, noise=None, **settings) -
             # test was taken against (``solve`` or ``estimate``)
             "pruned_settled": pruned.get("settled", True),
             "cut_reference": (res.levels[-1].get("cut_cells") or {}).get("reference"),
+            # step 4c's extents (``edge_extent``): kept or not, None when not tried
+            "cut_extent": ((res.levels[-1].get("cut_cells") or {}).get("extent") or {}).get("kept"),
             "split": steps.get("parts", 0) if steps.get("kept") else 0,
             "subsamples": int(res.levels[-1]["subsamples"]),
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
             "verdict": verdict(bool(res.success), sc), **sc}
+
+
+def _value(text: str):
+    """A ``--FIELD=VALUE`` option's value: a number, true/false, else the text."""
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    try:
+        return int(text)
+    except ValueError:
+        try:
+            return float(text)
+        except ValueError:
+            return text
 
 
 def main(argv=None) -> int:
@@ -105,6 +121,8 @@ def main(argv=None) -> int:
     nodes, levels = int(opts.get("nodes", 12)), int(opts.get("levels", 2))
     prior = opts.get("prior", "none")
     noise = float(opts["noise"]) if "noise" in opts else None
+    known = {"nodes", "levels", "prior", "noise", "rescore"}
+    settings = {k: _value(v) for k, v in opts.items() if k not in known}
     try:
         prior = float(prior)
     except ValueError:
@@ -112,14 +130,15 @@ def main(argv=None) -> int:
     if "rescore" in opts:
         return rescore(Path(opts["rescore"]))
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / (f"surface_coverage_{first}_{first + n - 1}" + (f"_noise{noise:g}" if noise else "") + ".json")
+    out = RESULTS / (f"surface_coverage_{first}_{first + n - 1}" + (f"_noise{noise:g}" if noise else "")
+                     + "".join(f"_{k}{v}" for k, v in sorted(settings.items())) + ".json")
     rows = []
     print(f"{'seed':>4} {'kind':<7} {'relay':<8} {'noise':>7} {'full':>4} {'depth MAE mm':>12} {'normal deg':>10} "
           f"{'albedo MAE':>10} {'inner':>5} {'cov2':>5} {'>4sd':>4} {'edge cov2':>9} {'in mask':>7} {'chi2/dof':>8} "
           f"{'q':>2} {'s':>5}  verdict")
     for seed in range(first, first + n):
         try:
-            r = run_one(seed, nodes, levels, prior, noise=noise)
+            r = run_one(seed, nodes, levels, prior, noise=noise, **settings)
         except Exception as exc:     # recorded, never fatal: the study goes on
             r = {"seed": seed, "verdict": "CRASHED", "error": f"{type(exc).__name__}: {exc}"}
         rows.append(r)
@@ -132,7 +151,8 @@ def main(argv=None) -> int:
                   f"{r['n_inner']:>5} {f(r['coverage2']):>5} {r['beyond4']:>4} {f(r['edge_coverage2']):>9} "
                   f"{f(r['full_in_mask']):>7} {r['chi2_dof']:>8.3f} {r['subsamples']:>2} "
                   f"{r['fit_s']:>5.0f}  {r['verdict']}", flush=True)
-        out.write_text(json.dumps({"settings": {"nodes": nodes, "levels": levels, "prior": prior, "noise": noise},
+        out.write_text(json.dumps({"settings": {"nodes": nodes, "levels": levels, "prior": prior, "noise": noise,
+                                                **settings},
                                    "rows": rows}, indent=1, default=float))
     return summary(rows, out)
 

@@ -51,12 +51,15 @@ def test_relay_amplitude_and_delay_match_transport():
     ("emg", "retroreflective", True, ((0.03, 0.3), (0.1, 0.2)), True, 1, True, False),
     ("gaussian", "lambertian", True, ((0.05, 0.4),), True, 2, False, False),
     ("gaussian", "lambertian", False, (), False, 1, False, True),
-    ("emg", "lambertian", True, ((0.04, 0.3),), True, 2, True, True)])
+    ("emg", "lambertian", True, ((0.04, 0.3),), True, 2, True, True),
+    ("gaussian", "lambertian", False, (), False, 2, False, "extent"),
+    ("emg", "lambertian", True, ((0.04, 0.3),), True, 3, True, "extent")])
 def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, confocal, slow, direct, sub, foot,
                                                                   offs):
     """g = J^T W r and H = J^T W J of SurfaceModel.linearise against central differences of
     SurfaceModel.predict, for every unknown (depths, albedos, response, slow tails, background,
-    and with ``offs`` the cells' centroid offsets of some nodes), with and without a trace
+    and with ``offs`` the cells' centroid offsets of some nodes, "extent": and the shrinks of
+    their emitting parts), with and without a trace
     footprint (``Relay.footprint``: its variance depends on the depths)."""
     from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.model import SurfaceState
@@ -71,11 +74,14 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
                footprint=rng.uniform(0, 0.01, (5, 2)) ** 2 if foot else None)
     tail = 0.01 if kind == "emg" else 0.0
     model = SurfaceModel(grid, rl, Response(kind, 0.006, tail, slow), brdf, subsamples=sub,
-                         direct=rng.uniform(0.5, 2, 5) if direct else None, offset_nodes=[0, 5, 11] if offs else None)
+                         direct=rng.uniform(0.5, 2, 5) if direct else None, offset_nodes=[0, 5, 11] if offs else None,
+                         cell_extent=offs == "extent")
+    E = 4 if offs == "extent" else 2
     st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, tail,
                       tuple(b for _, b in slow), 0.01, 0.05, 0.2,
-                      off=rng.uniform(-0.02, 0.02, (3, 2)) if offs else None)
-    assert model.npar == 2 * grid.n + len(model.glob) + (6 if offs else 0)
+                      off=(np.c_[rng.uniform(-0.02, 0.02, (3, 2)), rng.uniform(0.1, 0.6, (3, E - 2))]
+                           if offs else None))
+    assert model.npar == 2 * grid.n + len(model.glob) + (3 * E if offs else 0)
     y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
     wgt = rng.uniform(0.5, 2, (5, 150))
     lin = model.linearise(st, y, wgt, dtype=np.float64)
@@ -93,8 +99,8 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
     assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
     assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
     assert np.allclose(lin["m"], model.predict(st), atol=1e-14)
-    if offs:     # the offsets move the cells' returns: their columns are not empty
-        assert np.all(np.diag(lin["H"])[-6:] > 1e-6 * np.median(np.diag(lin["H"])[:grid.n]))
+    if offs:     # the offsets (and shrinks) move or spread the cells' returns: their columns are not empty
+        assert np.all(np.diag(lin["H"])[-3 * E:] > 1e-6 * np.median(np.diag(lin["H"])[:grid.n]))
 
 
 def test_footprint_variance_is_the_delay_variance_over_the_block():

@@ -51,7 +51,10 @@ Steps
    estimated by the quadratic model where 4b stopped early, ``cuts.restricted_optimum``, and its
    settled solve where the estimate does not keep them). Seed 310 of the study (a square tilted
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
-   std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std.
+   std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std. Where the
+   centroids are kept, the cut cells' emitting parts may also get a free extent per side
+   (``SurfaceSettings.edge_extent``): solved where the quadratic model at the centroids'
+   solution passes the same test, kept where the solve does (``["cut_cells"]["extent"]``).
    4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): while one more
    sub-sample per cell side changes a lit node's solution (to first order) by half its std or
    more, the level is solved again with it (up to 4 x 4, then a reason; ``["quadrature"]``).
@@ -237,9 +240,9 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
 
         level = {"grid": grid}       # the level's grid (step 4a may label it)
 
-        def make_model(nodes=None, rl=rl, sub=sub):      # the level's model
+        def make_model(nodes=None, rl=rl, sub=sub, extent=False):      # the level's model
             return SurfaceModel(level["grid"], rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
-                                offset_nodes=nodes)
+                                offset_nodes=nodes, cell_extent=extent)
 
         held = {"pruned": np.zeros(grid.n, bool)}       # step 4b's nodes, albedo held at zero
 
@@ -248,11 +251,12 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             b.hi[m.N:2 * m.N][held["pruned"]] = 0.0
             return b
 
-        def solve(m, b, s0, lin0=None, f_stop=None):   # the level's solver (``lin0``: LM's first linearisation)
+        def solve(m, b, s0, lin0=None, f_stop=None, max_iter=None):   # the level's solver (``lin0``: LM's first
+            it = st.max_iter if max_iter is None else min(int(max_iter), st.max_iter)   # linearisation)
             if st.solver == "lm":
-                return solve_lm(m, y, wgt, s0, lam, R, b, slack, st.max_iter, st.tol, dtype, lin0=lin0,
+                return solve_lm(m, y, wgt, s0, lam, R, b, slack, it, st.tol, dtype, lin0=lin0,
                                 tol_chi2=st.tol_chi2, f_stop=f_stop)
-            return solve_level(m, y, wgt, s0, lam, R, b, st.max_iter, st.tol)
+            return solve_level(m, y, wgt, s0, lam, R, b, it, st.tol)
 
         def record(res, **more):
             info["solves"].append({k: res[k] for k in ("status", "iterations", "success", "f", "at_bound", "history")
@@ -367,7 +371,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             # unknowns and the level is solved again from its solution (step 4c, ``cuts.py``)
             cut = fit_cut_cells(grid.shape, state, res, y, wgt, make_model, make_bounds, solve,
                                 settle=settle if unsettled else None,
-                                quad={"lam": lam, "R": R, "dtype": dtype, "floor": f_unpruned})
+                                quad={"lam": lam, "R": R, "dtype": dtype, "floor": f_unpruned}, extent=st.edge_extent)
             if cut is not None:
                 info["cut_cells"] = cut["info"]
                 _log.info("level %d (%dx%d): %s", li, n, n, cut["info"])
@@ -436,7 +440,7 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     rf = relay.window(lo, relay.grid.end)
     rf.gain = rf.gain * gain_scale
     m_full = SurfaceModel(model.grid, rf, model.response(state), model.brdf, False, model.chunk_bytes,
-                          model.sub, q_dir, model.workers, offset_nodes=model.onodes)
+                          model.sub, q_dir, model.workers, offset_nodes=model.onodes, cell_extent=model.extent)
     pred = m_full.predict(state)
     back = m_full.background(state)[0]
     wgt, _ = noise_weights(rf.traces, rf.sigma, st.noise_sigma)
@@ -500,7 +504,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
         else:
             reasons.append(pending[0] + ("" if worst is None else
                                       f"; the remaining Gauss-Newton step moves a mask node by {worst:.3g} std"))
-    n_free = 2 * N + 2 * model.K       # the node unknowns (with any cut cells' centroids)
+    n_free = 2 * N + model.E * model.K       # the node unknowns (with any cut cells' centroids)
     need = float(_chi2_dist.isf(DETECT_P, n_free))
     detected = gain_chi2 > need
     if not detected:
@@ -538,8 +542,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                        "cannot take both depths, so the normals of one part tilt toward the other, an error "
                        "the std do not hold; fit each surface over its own extent (SurfaceSettings.extent)")
     if edge.any():
-        how = ("the cut cells' centroids are fitted (their first moment), not the rest of the covered "
-               "part's shape" if model.K else "a partly covered cell is modelled as uniform")
+        how = (f"the cut cells' centroids{' and extents per side' if model.extent else ''} are fitted, not the rest "
+               "of the covered part's shape" if model.K else "a partly covered cell is modelled as uniform")
         notes.append(f"{int((edge & mask.reshape(shape)).sum())} of the {int(mask.sum())} mask nodes lie at the "
                      "surface's edge (SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
                      f"the noise only, not the error of the edge's model ({how})")
@@ -577,9 +581,11 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "depth_step": step,
                 # a last level cut by its iteration limit: what the remaining Gauss-Newton step moves
                 "remaining_step": remaining,
-                # the cut cells' fitted centroid offsets (step 4c): node indices, (K, 2) metres
+                # step 4c: the cut cells (node indices), their centroid offsets (K, 2) m [and shrinks (K, 2)]
                 "cell_offsets": {"nodes": model.onodes.tolist(),
-                                 "offset_m": model.centroid_offsets(state).tolist()} if model.K else None,
+                                 "offset_m": model.centroid_offsets(state)[:, :2].tolist(),
+                                 "shrink": model.centroid_offsets(state)[:, 2:].tolist() if model.extent else None}
+                if model.K else None,
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": float(st.albedo_prior),
                 # what the coarse levels could not do (not reasons: the last level decides)

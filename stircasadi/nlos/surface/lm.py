@@ -24,6 +24,9 @@ from .model import SurfaceModel, SurfaceState
 
 __all__ = ["solve_lm", "Bounds", "last_decrease", "nested_lr", "prior_penalty", "remaining_step", "CONVERGED_STD"]
 
+#: the largest shrink of a cut cell's emitting part per side (``SurfaceModel(cell_extent=True)``)
+SHRINK_MAX = 0.9
+
 
 class Bounds:
     """Lower / upper bounds of ``SurfaceModel.pack``'s vector (depths free)."""
@@ -43,10 +46,10 @@ class Bounds:
                 lo[2 * N + i], hi[2 * N + i] = beta
             elif name == "bgtau":
                 lo[2 * N + i], hi[2 * N + i] = bgtau
-        if model.K:     # the cells' centroid offsets stay inside their cells
+        if model.K:     # the cells' centroid offsets stay inside their cells (shrinks in [0, 0.9])
             g1 = 2 * N + len(model.glob)
-            half = np.tile([0.5 * model.grid.hx, 0.5 * model.grid.hy], model.K)
-            lo[g1:], hi[g1:] = -half, half
+            half = [0.5 * model.grid.hx, 0.5 * model.grid.hy] + ([SHRINK_MAX, SHRINK_MAX] if model.E == 4 else [])
+            lo[g1:], hi[g1:] = np.tile([-half[0], -half[1], 0.0, 0.0][:model.E], model.K), np.tile(half, model.K)
         self.lo, self.hi = lo, hi
         self.beta_idx = np.array([2 * N + i for i, k in enumerate(model.glob) if k.startswith("beta")], int)
 
@@ -227,7 +230,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
                 hist.append({"f": float(f), "f_new": float(fn),
                              "predicted": -float(g @ dd + 0.5 * dd @ (H @ dd)),
                              "mu": float(mu), "dz_max": float(np.max(np.abs(dd[:N]))) if N else 0.0}
-                            | ({"do_max": float(np.max(np.abs(dd[-2 * model.K:])))} if model.K else {}))
+                            | ({"do_max": float(np.max(np.abs(dd[-model.E * model.K:].reshape(model.K, -1)[:, :2])))} if model.K else {}))
                 rel = (f - fn) / max(abs(f), 1e-300)
                 small = False
                 if tol_chi2 > 0:

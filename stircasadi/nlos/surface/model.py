@@ -44,6 +44,7 @@ import scipy.sparse as sp
 from ...errors import ReconstructionError
 from ..relay import Relay
 from .chunks import run_chunks
+from .jit import compiled as _compiled
 from .grid import DepthGrid
 from .physics import BRDFS, cell_variance, footprint_variance, relay_amplitude, relay_delay
 from .response import Response
@@ -51,47 +52,10 @@ from .response import Response
 __all__ = ["SurfaceModel", "SurfaceState"]
 
 
-#: the JIT's state for this process: its temporary folder, whether a compile failed (then every
-#: later model uses the virtual machine without trying again), and the compiled functions by
-#: their serialised form (the models of one fit, and its levels' first predictions, share them)
-_JIT = {"dir": None, "unavailable": False, "done": {}}
-
 #: the largest chunk of a prediction (bytes): its ragged window arrays stay in the cache (32 x 32
 #: nodes, the resolution chart's 256 traces, 2 threads: 2.14 s a prediction in chunks of 192 MiB,
 #: most of it page faults and memory traffic; 0.52 s at 12 MiB, 0.71 s at 24; the same numbers)
 PREDICT_CHUNK_BYTES = 12 * 2 ** 20
-
-
-def _compiled(f: ca.Function) -> ca.Function:
-    """``f`` compiled to machine code by CasADi's JIT (C through the system's compiler, -O2, no
-    fast-math: the same IEEE arithmetic; the map over (trace, node) pairs then runs 3-4x faster
-    than CasADi's SX virtual machine), or ``f`` itself where no compiler works (the result is the
-    same, only slower) or when the environment sets STIRCASADI_JIT=0."""
-    import os
-    if os.environ.get("STIRCASADI_JIT", "1") == "0" or _JIT["unavailable"]:
-        return f
-    key = f.serialize()
-    if key in _JIT["done"]:
-        return _JIT["done"][key]
-    try:
-        if _JIT["dir"] is None:
-            import atexit
-            import shutil
-            import tempfile
-            _JIT["dir"] = tempfile.mkdtemp(prefix="stircasadi-jit-")
-            atexit.register(shutil.rmtree, _JIT["dir"], True)
-        ins = f.sx_in()
-        fc = ca.Function(f.name(), ins, f.call(ins), {
-            "jit": True, "compiler": "shell", "jit_temp_suffix": True, "jit_cleanup": False,
-            "jit_options": {"flags": ["-O2"], "directory": _JIT["dir"], "cleanup": False}})
-    except Exception as exc:                        # no compiler, unwritable temp folder, ...
-        import logging
-        logging.getLogger(__name__).info("CasADi JIT unavailable (%s); the pair geometry runs on "
-                                         "CasADi's virtual machine (same numbers, slower)", exc)
-        _JIT["unavailable"] = True
-        return f
-    _JIT["done"][key] = fc
-    return fc
 
 
 def _gram_upper(J: np.ndarray) -> np.ndarray:
@@ -122,7 +86,8 @@ class SurfaceState:
     bg1: float = 0.0
     bgtau: float = 0.1
     #: (K, 2) in-plane centroid offsets (along u, v; metres) of the cells of the model's
-    #: ``offset_nodes`` (a cell the surface's edge cuts emits from its covered part), or None
+    #: ``offset_nodes`` (a cell the surface's edge cuts emits from its covered part), then with
+    #: ``cell_extent`` (K, 4): also the shrink (s_u, s_v) of the emitting part's extent; or None
     off: np.ndarray | None = None
 
     def copy(self) -> "SurfaceState":
@@ -156,11 +121,14 @@ class SurfaceModel:
         edge cuts is covered on one side only, and a uniform cell at the node puts its return
         at the wrong delay (measured: seeded twins' depth errors of 5-8 std over the whole
         surface, its claims' coverage 0.58 -> 0.84 with the true centroids given).
+    cell_extent : the offset nodes' cells also emit from a part (1 - s_u) x (1 - s_v) of the
+        cell's sides (its sub-samples and delay spread shrink about the centroid; the area, and
+        so the albedo's meaning, stay the cell's), s_u, s_v unknowns packed after each offset.
     """
 
     def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
                  fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
-                 direct: np.ndarray | None = None, workers: int = 1, offset_nodes=None):
+                 direct: np.ndarray | None = None, workers: int = 1, offset_nodes=None, cell_extent=False):
         if brdf not in BRDFS:
             raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
         if brdf == "retroreflective" and not relay.confocal:
@@ -194,13 +162,15 @@ class SurfaceModel:
         if on.size and (on.min() < 0 or on.max() >= self.N):
             raise ReconstructionError(f"offset_nodes must be node indices in 0..{self.N - 1}; got {on.min()}..{on.max()}.")
         self.onodes, self.K = on, int(on.size)
+        self.extent = bool(cell_extent)
+        self.E = 4 if self.extent else 2         # unknowns per offset node (ox, oy[, s_u, s_v])
         self._build()
         self._maps: dict = {}
 
     # ------------------------------------------------------------------ parameters
     @property
     def npar(self) -> int:
-        return 2 * self.N + len(self.glob) + 2 * self.K
+        return 2 * self.N + len(self.glob) + self.E * self.K
 
     @staticmethod
     def _get(st: SurfaceState, name: str) -> float:
@@ -210,11 +180,14 @@ class SurfaceModel:
         return np.concatenate([st.z, st.rho, [self._get(st, k) for k in self.glob], self.centroid_offsets(st).ravel()])
 
     def centroid_offsets(self, st: SurfaceState) -> np.ndarray:
-        """The state's (K, 2) centroid offsets (zeros where it holds none)."""
+        """The state's (K, E) centroid offsets [and shrinks] (zeros where it holds none; a
+        state's (K, 2) offsets get zero shrinks)."""
         if st.off is None or self.K == 0:
-            return np.zeros((self.K, 2))
+            return np.zeros((self.K, self.E))
         off = np.asarray(st.off, float)
-        if off.shape != (self.K, 2):
+        if off.shape == (self.K, 2) and self.E == 4:
+            off = np.hstack([off, np.zeros((self.K, 2))])
+        if off.shape != (self.K, self.E):
             raise ReconstructionError(f"The state's offsets have shape {off.shape}; the model has {self.K} offset nodes.")
         return off
 
@@ -227,7 +200,7 @@ class SurfaceModel:
             else:
                 kw[k] = float(theta[2 * N + i])
         g1 = 2 * N + len(self.glob)
-        off = np.array(theta[g1:g1 + 2 * self.K], float).reshape(self.K, 2) if self.K else None
+        off = np.array(theta[g1:g1 + self.E * self.K], float).reshape(self.K, self.E) if self.K else None
         return replace(like, z=np.array(theta[:N], float), rho=np.array(theta[N:2 * N], float),
                        betas=tuple(betas), off=off, **kw)
 
@@ -261,16 +234,19 @@ class SurfaceModel:
     # ------------------------------------------------------------------ CasADi pair geometry
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
-        p = ca.SX.sym("p", 8)          # z, gx, gy, zxx, zyy, zxy of the node, its cell's centroid ox, oy
+        # z, gx, gy, zxx, zyy, zxy of the node, its cell's centroid ox, oy [and shrink su, sv]
+        p = ca.SX.sym("p", 6 + self.E)
         q = ca.SX.sym("q", 21)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain fu2 fv2 dx dy
         z, gx0, gy0, zxx, zyy, zxy, ox, oy = (p[i] for i in range(8))
-        dx, dy = q[19] + ox, q[20] + oy
+        fu, fv = (1 - p[8], 1 - p[9]) if self.extent else (1.0, 1.0)
+        dx, dy = (q[19] * fu + ox, q[20] * fv + oy) if self.extent else (q[19] + ox, q[20] + oy)
         # the sub-sample at in-plane offset (dx, dy) from the node (its cell's centroid moved by
         # (ox, oy)) lies on the node's second-order patch
         gx = gx0 + zxx * dx + zxy * dy
         gy = gy0 + zxy * dx + zyy * dy
         s = ca.sqrt(1 + gx ** 2 + gy ** 2)
-        X = (q[0:3] + ox * u + oy * v
+        ex, ey = (ox - q[19] * p[8], oy - q[20] * p[9]) if self.extent else (ox, oy)
+        X = (q[0:3] + ex * u + ey * v
              + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv)
         nX = -(wv - gx * u - gy * v) / s
         hx, hy = self.grid.hx / self.sub, self.grid.hy / self.sub
@@ -278,7 +254,7 @@ class SurfaceModel:
         L, D = q[3:6], q[6:9]
         amp = relay_amplitude(L, D, q[9:12], q[12:15], X, nX, area, 1.0, q[16], brdf=self.brdf)
         tau = relay_delay(L, D, X, q[15])
-        c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx, hy)
+        c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx * fu, hy * fv)    # (fu = 1: exact)
         if self.footprint:     # a trace summing several scan points (Relay.footprint)
             c2 = c2 + footprint_variance(L, D, X, u, v, q[17], q[18])
         out = ca.vertcat(amp, tau, c2)
@@ -317,14 +293,15 @@ class SurfaceModel:
         # CasADi's dense matrices are column-major: a (rows, cols) input is a C-ordered
         # (cols, rows) NumPy array, handed over and filled in place through the function's
         # buffer (converting to and from DM took longer than the compiled map itself)
-        Pm = np.ascontiguousarray(np.repeat(np.stack(loc, axis=1), S, axis=0))     # (N S, 8)
+        Pm = np.ascontiguousarray(np.repeat(np.stack(loc, axis=1), S, axis=0))     # (N S, 6 + E)
         off = np.tile(self.offsets, (N, 1))                                        # (N S, 2)
         Xb = np.repeat(self.base, S, axis=0) + off[:, :1] * u[None] + off[:, 1:] * v[None]
         nd = np.ascontiguousarray(np.hstack([Xb, off]))                            # (N S, 5)
         tr = np.ascontiguousarray(np.hstack([r.L[t0:t1], r.D[t0:t1], r.nL[t0:t1], r.nD[t0:t1],
                                              r.leg[t0:t1, None], r.gain[t0:t1, None],
                                              r.footprint[t0:t1]]))                       # (nt, 16)
-        out = np.empty((nt * N * S, 27 if jac else 3))
+        npl = 6 + self.E
+        out = np.empty((nt * N * S, 3 + 3 * npl if jac else 3))
         buf, run = self._mapped(N * S, nt, jac).buffer()
         for i, a in enumerate((Pm, nd, tr)):
             buf.set_arg(i, memoryview(a))
@@ -333,7 +310,7 @@ class SurfaceModel:
         vals = out[:, :3].reshape(nt * N, S, 3)
         if not jac:
             return vals, None
-        return vals, out[:, 3:].reshape(nt * N, S, 8, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
+        return vals, out[:, 3:].reshape(nt * N, S, npl, 3).transpose(0, 1, 3, 2)   # [k, s, output, input]
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool,
@@ -394,13 +371,12 @@ class SurfaceModel:
 
     # ------------------------------------------------------------------ evaluation
     def _local(self, z, st: SurfaceState | None = None):
-        """The eight local unknowns of every node's patch (``ops`` applied to the depths; the
-        centroid offsets, zero but at ``onodes``)."""
-        ox, oy = np.zeros(self.N), np.zeros(self.N)
+        """The 6 + E local unknowns of every node's patch (``ops`` applied to the depths; the
+        centroid offsets [and shrinks], zero but at ``onodes``)."""
+        extra = np.zeros((self.E, self.N))
         if self.K and st is not None:
-            off = self.centroid_offsets(st)
-            ox[self.onodes], oy[self.onodes] = off[:, 0], off[:, 1]
-        return [z] + [o @ z for o in self.ops[1:]] + [ox, oy]
+            extra[:, self.onodes] = self.centroid_offsets(st).T
+        return [z] + [o @ z for o in self.ops[1:]] + list(extra)
 
     def _core(self, st, resp, t0, t1, loc):
         """Binned core deposits G (nt, T) of traces t0..t1 (no slow tails, no background)."""
@@ -487,9 +463,9 @@ class SurfaceModel:
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
             ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 8)
             Q = np.hstack([rr * Bw, Ar * (s * dF1), -Ar * dF])
-            # rows 0-5 the patch's unknowns, 6 the albedo, 7-8 the centroid offsets (with any)
-            loc = np.empty((9 if self.K else 7, len(pe)))
-            for c in [0, 1, 2, 3, 4, 5] + ([6, 7] if self.K else []):
+            # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
+            loc = np.empty((7 + self.E if self.K else 7, len(pe)))
+            for c in list(range(6)) + (list(range(6, 6 + self.E)) if self.K else []):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
                 loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, Cc[pe])
             loc[6] = np.sum(Ae * Bw, axis=1)
@@ -524,7 +500,7 @@ class SurfaceModel:
             g1 = 2 * N + len(gcols)
             gc[2 * N:g1] = gcols
             if self.K:
-                gc[g1:] = np.stack([gl[7][self.onodes], gl[8][self.onodes]], axis=1).ravel()
+                gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
             return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
@@ -552,7 +528,7 @@ class SurfaceModel:
         rows = rmap[rows_loc]
         ng = len(pre)
         K = self.K
-        Jc = np.zeros((R, 2 * N + ng + 2 * K), dtype=dtype)
+        Jc = np.zeros((R, 2 * N + ng + self.E * K), dtype=dtype)
         # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
         # (a pair's bin touches one node's six local unknowns), times the stacked operators
         # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
@@ -571,9 +547,9 @@ class SurfaceModel:
             kmap[self.onodes] = np.arange(K)
             kk = kmap[node]
             on = kk >= 0
-            base = rows[on] * Jc.shape[1] + 2 * N + ng + 2 * kk[on]
-            Jc.ravel()[base] = loc[7][on]
-            Jc.ravel()[base + 1] = loc[8][on]
+            base = rows[on] * Jc.shape[1] + 2 * N + ng + self.E * kk[on]
+            for e in range(self.E):
+                Jc.ravel()[base + e] = loc[7 + e][on]
         if resp.slow:
             Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
         Jc = np.hstack([Jc[:, :2 * N + ng]] + [c.ravel()[ru][:, None].astype(dtype) for c in post]

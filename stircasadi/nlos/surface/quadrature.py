@@ -88,7 +88,7 @@ def refine_quadrature(state, res: dict, model, bounds, y, wgt, lam, R, make_mode
     while True:
         q = int(model.sub)
         nodes = model.onodes if model.K else None
-        m2 = make_model(nodes, sub=q + 1)
+        m2 = make_model(nodes, sub=q + 1, **({"extent": True} if model.extent else {}))
         b2 = make_bounds(m2)
         rs, lin = _change_in_std(m2, model, state, y, wgt, lam, R, b2, z)
         worst = rs["max_std"]

@@ -61,6 +61,10 @@ class SurfaceSettings:
     #: get a free in-plane centroid (the covered part's first moment, within the cell) and the
     #: last level is solved again with them; False: every cell emits from its node
     edge_offsets: bool = True
+    #: with ``edge_offsets``: the cut cells' emitting parts also get a free extent per side about
+    #: their centroids (``SurfaceModel(cell_extent=True)``), kept by their own ratio test
+    #: (``cuts.py``); False: centroids only
+    edge_extent: bool = True
     #: nodes whose albedo explains less of the data than noise would (``prune.py``: each node's
     #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01) get albedo zero and the
     #: last level is solved again, kept by a likelihood-ratio test; False: every node stays free
