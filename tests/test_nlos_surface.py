@@ -791,7 +791,9 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
     monkeypatch.setattr(F, "solve_lm", first_cut)
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=6, levels=2, known_gain=True, sigma0=0.01,
                                                    max_iter=40, prune=False, quadrature_check=False), gate=0.2)
-    assert calls == [16, 36, 36]       # the last level solved again with its cut cells' centroids
+    # the last level solved again with its cut cells' centroids (then, where the quadratic model
+    # asks for their extents, the extents' probe and its solve on: 5 solves measured)
+    assert calls[:3] == [16, 36, 36] and len(calls) <= 5 and set(calls[1:]) == {36}
     assert res.levels[0]["status"] == "Maximum_Iterations_Exceeded" and res.levels[1]["success"]
     assert not any(r.startswith("level") for r in res.reasons)
     note = [n for n in res.extras["notes"] if n.startswith("level 0 (4x4)")]

@@ -23,7 +23,11 @@ def _plane(x, y):
 def coarse_cells():
     """A plane tilted 15 deg, 0.35 m behind an 8 x 8 confocal scan (25 x 25 patches, 3 cm FWHM,
     1 % noise), fitted on 6 x 6 nodes (4.8 cm cells, wider than the response's 1.3 cm std) with
-    one moment-matched sample per cell (``subsamples=1``), with and without the check."""
+    one moment-matched sample per cell (``subsamples=1``), with and without the check; the cut
+    cells' extents off (``edge_extent=False``: the check's own behaviour on the cells alone; with
+    them the same scene measured: changes 5.5, 1.4, 1.3, then 0.51 for 4 -> 5, a reason, while
+    the interior depth error is 0.21 mm against 1.16 mm without them: a shrink also tunes the
+    moment-matched spread of a cut cell, so the steps no longer fall as the integration's order)."""
     from stircasadi.nlos import VolumeSettings, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
 
@@ -32,7 +36,7 @@ def coarse_cells():
     relay = from_capture(confocal_capture(stir, grid, xyz, noise_rel=0.01, fwhm=0.03))
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, subsamples=1)
+    kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, subsamples=1, edge_extent=False)
     return {chk: fit_surface(relay, init, SurfaceSettings(**kw, quadrature_check=chk), gate=0.2)
             for chk in (False, True)}
 
