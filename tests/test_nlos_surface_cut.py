@@ -174,17 +174,18 @@ def test_one_far_node_with_a_large_albedo_does_not_set_the_mask_scale():
                                   [False, True, True, False])
 
 
-def _five_by_five(offsets=None):
-    """A 5 x 5 grid at 0.4 m over 16 random wall pairs (Gaussian response 6 mm, the shape held),
-    with centroids at ``offsets``."""
+def _five_by_five(offsets=None, pairs=16, half=0.25, extent=False):
+    """A 5 x 5 grid at 0.4 m over ``pairs`` random wall pairs within +-``half`` m (Gaussian
+    response 6 mm, the shape held), with centroids at ``offsets`` (and ``extent``: shrinks)."""
     rng = np.random.default_rng(21)
     frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
     grid = DepthGrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.1, 0.1, 5), frame)
-    L = np.c_[rng.uniform(-0.25, 0.25, (16, 2)), np.zeros(16)]
-    D = np.c_[rng.uniform(-0.25, 0.25, (16, 2)), np.zeros(16)]
-    n = np.tile([0, 0, 1.0], (16, 1))
-    rl = Relay(np.zeros((16, 160)), TimeGrid(0.6, 0.004, 160), L, D, n, n, 0.0, 1.0)
-    return SurfaceModel(grid, rl, Response("gaussian", 0.006), fit_shape=False, offset_nodes=offsets)
+    L = np.c_[rng.uniform(-half, half, (pairs, 2)), np.zeros(pairs)]
+    D = np.c_[rng.uniform(-half, half, (pairs, 2)), np.zeros(pairs)]
+    n = np.tile([0, 0, 1.0], (pairs, 1))
+    rl = Relay(np.zeros((pairs, 160)), TimeGrid(0.6, 0.004, 160), L, D, n, n, 0.0, 1.0)
+    return SurfaceModel(grid, rl, Response("gaussian", 0.006), fit_shape=False, offset_nodes=offsets,
+                        cell_extent=extent)
 
 
 def test_the_restricted_optimum_is_the_quadratic_models_and_leaves_the_centroids_out():
@@ -312,19 +313,13 @@ def test_the_extents_are_kept_where_the_cells_emit_from_a_part_and_not_elsewhere
     from stircasadi.nlos.surface.cuts import fit_cut_cells
     from stircasadi.nlos.surface.lm import Bounds, solve_lm
 
-    rng = np.random.default_rng(21)
-    frame = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
-    grid = DepthGrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.1, 0.1, 5), frame)
-    L = np.c_[rng.uniform(-0.3, 0.3, (64, 2)), np.zeros(64)]
-    D = np.c_[rng.uniform(-0.3, 0.3, (64, 2)), np.zeros(64)]
-    n = np.tile([0, 0, 1.0], (64, 1))
-    rl = Relay(np.zeros((64, 160)), TimeGrid(0.6, 0.004, 160), L, D, n, n, 0.0, 1.0)
-
     def make(nodes=None, extent=False):
-        return SurfaceModel(grid, rl, Response("gaussian", 0.006), fit_shape=False, offset_nodes=nodes,
-                            cell_extent=extent)
+        return _five_by_five(nodes, pairs=64, half=0.3, extent=extent)
 
     plain = make()
+    grid = plain.grid
+    rng = np.random.default_rng(21)
+    rng.random((2 * 64, 2))                 # (the wall pairs' draws: the noise follows them)
     N = plain.N
     rho = np.zeros((5, 5))
     rho[1:4, 1:4] = 0.7
