@@ -51,10 +51,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .lm import _damping, _free, nested_lr, prior_gradient, prior_penalty
+from .lm import _damping, _free, first_linearisation, nested_lr, prior_gradient, prior_penalty
 from .mask import cut_cells
 
-__all__ = ["CUT_P", "fit_cut_cells", "restricted_optimum"]
+__all__ = ["CUT_P", "cell_offsets", "fit_cut_cells", "restricted_optimum"]
 
 #: false-alarm probability of the likelihood-ratio test that keeps the cut cells' centroids:
 #: the nested model with 2 K more unknowns must lower chi^2 by more than chance would
@@ -117,20 +117,24 @@ def fit_cut_cells(shape, state, res: dict, y, wgt, make_model, make_bounds, solv
     s0 = replace(state, off=np.zeros((band.size, 2)))
     lin0, f_ref, ref, settled = None, float(res["f"]), "solve", None
     q = quad or {"lam": 0.0, "R": np.zeros((model.N, model.N)), "dtype": np.float64}
+
+    def ratio(f_restricted, f, chi2, m):      # the test of 2 K more unknowns of ``m``: (lr, threshold)
+        return nested_lr(f_restricted, f, chi2, int(np.size(y)) - m.npar, 2 * band.size, CUT_P)
+
+    def chi2_of(m, out):
+        return float(m.objective(out["state"], y, wgt)[0])
+
     if settle is not None:
-        s0 = model.unpack(bounds.project(model.pack(s0)), s0)
-        held = bounds.hi[model.N:2 * model.N] <= 0.0
-        lin0 = model.linearise(s0, y, wgt, dtype=q["dtype"], skip=held if held.any() else None)
+        s0, lin0 = first_linearisation(model, bounds, s0, y, wgt, q["dtype"])
         f_ref = restricted_optimum(model, bounds, lin0, s0, q["lam"], q["R"])
         f_ref, ref = min(f_ref, float(q.get("floor", np.inf))), "estimate"
     out = solve(model, bounds, s0, lin0=lin0)
-    size = int(np.size(y))
-    chi2 = float(model.objective(out["state"], y, wgt)[0])
-    lr, need = nested_lr(f_ref, out["f"], chi2, size - model.npar, 2 * band.size, CUT_P)
+    chi2 = chi2_of(model, out)
+    lr, need = ratio(f_ref, out["f"], chi2, model)
     if settle is not None and lr <= need:
         settled = settle()
         f_ref, ref = float(settled["f"]), "solve"
-        lr, need = nested_lr(f_ref, out["f"], chi2, size - model.npar, 2 * band.size, CUT_P)
+        lr, need = ratio(f_ref, out["f"], chi2, model)
     info = {"nodes": int(band.size), "lr": lr, "threshold": need, "p": CUT_P, "kept": bool(lr > need),
             "reference": ref, "f_reference": f_ref, "status": out["status"], "iterations": out["iterations"]}
     if extent and info["kept"]:
@@ -141,29 +145,36 @@ def fit_cut_cells(shape, state, res: dict, y, wgt, make_model, make_bounds, solv
         # and kept by the same test on its own F
         m2 = make_model(band, extent=True)
         b2 = make_bounds(m2)
-        s1 = m2.unpack(b2.project(m2.pack(out["state"])), out["state"])
-        held = b2.hi[m2.N:2 * m2.N] <= 0.0
-        lin1 = m2.linearise(s1, y, wgt, dtype=q["dtype"], skip=held if held.any() else None)
-        shrinks = m2.npar - 4 * band.size + (np.arange(band.size)[:, None] * 4 + np.array([2, 3])).ravel()
+        s1, lin1 = first_linearisation(m2, b2, out["state"], y, wgt, q["dtype"])
+        shrinks = np.arange(m2.npar - 4 * band.size, m2.npar).reshape(band.size, 4)[:, 2:].ravel()
         f1 = min(float(out["f"]), restricted_optimum(m2, b2, lin1, s1, q["lam"], q["R"], hold=shrinks))
         f_est = restricted_optimum(m2, b2, lin1, s1, q["lam"], q["R"], hold=[])
-        lr_est, need2 = nested_lr(f1, f_est, float(lin1["chi2"]), size - m2.npar, 2 * band.size, CUT_P)
+        lr_est, need2 = ratio(f1, f_est, float(lin1["chi2"]), m2)
         ext = info["extent"] = {"lr_estimate": lr_est, "threshold": need2, "f_reference": f1, "probed": False,
                                 "kept": False}
         if lr_est > need2:
             # the quadratic model overpromises (486 against the 146 a solve reached on the 32 x 32
             # chart): a probe of EXTENT_PROBE iterations must pass the test before the solve goes on
             out2 = solve(m2, b2, s1, lin0=lin1, max_iter=EXTENT_PROBE)
-            chi2 = float(m2.objective(out2["state"], y, wgt)[0])
-            lr2, _ = nested_lr(f1, out2["f"], chi2, size - m2.npar, 2 * band.size, CUT_P)
+            lr2, _ = ratio(f1, out2["f"], chi2_of(m2, out2), m2)
             ext.update({"probed": True, "lr_probe": lr2, "lr": lr2, "kept": bool(lr2 > need2),
                         "status": out2["status"], "iterations": out2["iterations"]})
             if lr2 > need2 and out2["status"].startswith("Maximum"):
                 more = solve(m2, b2, out2["state"])          # kept: solved on (F only falls)
-                chi2 = float(m2.objective(more["state"], y, wgt)[0])
-                lr2, _ = nested_lr(f1, more["f"], chi2, size - m2.npar, 2 * band.size, CUT_P)
+                lr2, _ = ratio(f1, more["f"], chi2_of(m2, more), m2)
                 ext.update({"lr": lr2, "status": more["status"], "iterations": out2["iterations"] + more["iterations"]})
                 out2 = more
             if lr2 > need2:
                 model, bounds, out = m2, b2, out2
     return {"info": info, "model": model, "bounds": bounds, "res": out, "restricted": settled}
+
+
+def cell_offsets(model, state) -> dict | None:
+    """The result's record of step 4c (``extras["cell_offsets"]``): the cut cells' ``nodes``,
+    their centroid offsets ``offset_m`` (K, 2) and, with extents, their ``shrink`` (K, 2); None
+    without cut cells."""
+    if not model.K:
+        return None
+    off = model.centroid_offsets(state)
+    return {"nodes": model.onodes.tolist(), "offset_m": off[:, :2].tolist(),
+            "shrink": off[:, 2:].tolist() if model.extent else None}

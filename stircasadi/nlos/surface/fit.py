@@ -53,8 +53,8 @@ Steps
    20 deg, paired relay, 0.3 % noise): without, chi2/dof 1.034 and 16 of 38 claims beyond 2
    std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std. Where the
    centroids are kept, the cut cells' emitting parts may also get a free extent per side
-   (``SurfaceSettings.edge_extent``): solved where the quadratic model at the centroids'
-   solution passes the same test, kept where the solve does (``["cut_cells"]["extent"]``).
+   (``SurfaceSettings.edge_extent``): probed where the quadratic model at the centroids'
+   solution passes the same test, kept where the probe does (``["cut_cells"]["extent"]``).
    4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): while one more
    sub-sample per cell side changes a lit node's solution (to first order) by half its std or
    more, the level is solved again with it (up to 4 x 4, then a reason; ``["quadrature"]``).
@@ -110,7 +110,7 @@ from ..volume import Maps
 from .grid import DepthGrid, normal_std
 from .start import extent as _extent, initial as _initial
 from .prior import GCV_PROBES, _choose_lambda, prior_operator  # noqa: F401  (read by the tests, patched by one)
-from .cuts import CUT_P, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
+from .cuts import CUT_P, cell_offsets, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .quadrature import refine_quadrature
 from .prune import prune_nodes
 from .steps import step_labels
@@ -251,8 +251,9 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             b.hi[m.N:2 * m.N][held["pruned"]] = 0.0
             return b
 
-        def solve(m, b, s0, lin0=None, f_stop=None, max_iter=None):   # the level's solver (``lin0``: LM's first
-            it = st.max_iter if max_iter is None else min(int(max_iter), st.max_iter)   # linearisation)
+        # the level's solver (``lin0``: LM's first linearisation; ``max_iter``: fewer than the level's)
+        def solve(m, b, s0, lin0=None, f_stop=None, max_iter=None):
+            it = st.max_iter if max_iter is None else min(int(max_iter), st.max_iter)
             if st.solver == "lm":
                 return solve_lm(m, y, wgt, s0, lam, R, b, slack, it, st.tol, dtype, lin0=lin0,
                                 tol_chi2=st.tol_chi2, f_stop=f_stop)
@@ -581,11 +582,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "depth_step": step,
                 # a last level cut by its iteration limit: what the remaining Gauss-Newton step moves
                 "remaining_step": remaining,
-                # step 4c: the cut cells (node indices), their centroid offsets (K, 2) m [and shrinks (K, 2)]
-                "cell_offsets": {"nodes": model.onodes.tolist(),
-                                 "offset_m": model.centroid_offsets(state)[:, :2].tolist(),
-                                 "shrink": model.centroid_offsets(state)[:, 2:].tolist() if model.extent else None}
-                if model.K else None,
+                # step 4c: the cut cells, their centroid offsets and any shrinks (``cuts.cell_offsets``)
+                "cell_offsets": cell_offsets(model, state),
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": float(st.albedo_prior),
                 # what the coarse levels could not do (not reasons: the last level decides)

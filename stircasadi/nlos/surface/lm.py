@@ -22,7 +22,8 @@ from scipy.stats import chi2 as _chi2_dist
 
 from .model import SurfaceModel, SurfaceState
 
-__all__ = ["solve_lm", "Bounds", "last_decrease", "nested_lr", "prior_penalty", "remaining_step", "CONVERGED_STD"]
+__all__ = ["solve_lm", "Bounds", "first_linearisation", "last_decrease", "nested_lr", "prior_penalty", "remaining_step",
+           "CONVERGED_STD"]
 
 #: the largest shrink of a cut cell's emitting part per side (``SurfaceModel(cell_extent=True)``)
 SHRINK_MAX = 0.9
@@ -46,10 +47,11 @@ class Bounds:
                 lo[2 * N + i], hi[2 * N + i] = beta
             elif name == "bgtau":
                 lo[2 * N + i], hi[2 * N + i] = bgtau
-        if model.K:     # the cells' centroid offsets stay inside their cells (shrinks in [0, 0.9])
+        if model.K:     # the cells' centroid offsets stay inside their cells (any shrinks in [0, SHRINK_MAX])
             g1 = 2 * N + len(model.glob)
-            half = [0.5 * model.grid.hx, 0.5 * model.grid.hy] + ([SHRINK_MAX, SHRINK_MAX] if model.E == 4 else [])
-            lo[g1:], hi[g1:] = np.tile([-half[0], -half[1], 0.0, 0.0][:model.E], model.K), np.tile(half, model.K)
+            hx, hy = 0.5 * model.grid.hx, 0.5 * model.grid.hy
+            lo[g1:] = np.tile([-hx, -hy, 0.0, 0.0][:model.E], model.K)
+            hi[g1:] = np.tile([hx, hy, SHRINK_MAX, SHRINK_MAX][:model.E], model.K)
         self.lo, self.hi = lo, hi
         self.beta_idx = np.array([2 * N + i for i, k in enumerate(model.glob) if k.startswith("beta")], int)
 
@@ -132,6 +134,20 @@ def prior_vector(st: SurfaceState, M: int) -> np.ndarray:
     return st.z if M == len(st.z) else np.concatenate([st.z, st.rho])
 
 
+def held_albedos(bounds: Bounds, N: int) -> np.ndarray | None:
+    """The albedos held at zero (``Bounds`` hi = 0: pruned nodes) as ``linearise``'s ``skip``
+    (their pairs are not linearised), None where none is."""
+    held = bounds.hi[N:2 * N] <= 0.0
+    return held if held.any() else None
+
+
+def first_linearisation(model: SurfaceModel, bounds: Bounds, st: SurfaceState, y, wgt, dtype):
+    """``st`` projected to ``bounds`` and the linearisation there that ``solve_lm`` makes first
+    (to hand it over as ``lin0`` after using it)."""
+    st = model.unpack(bounds.project(model.pack(st)), st)
+    return st, model.linearise(st, y, wgt, dtype=dtype, skip=held_albedos(bounds, model.N))
+
+
 def prior_penalty(st: SurfaceState, lam: float, R_prior) -> float:
     """The prior's share of F, lam / 2 v^T R v (``prior_vector``; 0 without a prior)."""
     if not lam > 0:
@@ -185,9 +201,7 @@ def solve_lm(model: SurfaceModel, y, wgt, st: SurfaceState, lam: float, R_prior,
 
     th = bounds.project(model.pack(st))
     st = model.unpack(th, st)
-    # albedos held at zero (``Bounds`` hi = 0: pruned nodes): their pairs are not linearised
-    held = bounds.hi[N:2 * N] <= 0.0
-    skip = held if held.any() else None
+    skip = held_albedos(bounds, N)      # albedos held at zero: their pairs are not linearised
     mu = 1e-3
     status, it, f = "Maximum_Iterations_Exceeded", 0, None
     dof = max(int(np.size(y)) - model.npar, 1)

@@ -465,7 +465,7 @@ class SurfaceModel:
             Q = np.hstack([rr * Bw, Ar * (s * dF1), -Ar * dF])
             # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
             loc = np.empty((7 + self.E if self.K else 7, len(pe)))
-            for c in list(range(6)) + (list(range(6, 6 + self.E)) if self.K else []):
+            for c in range(6 + self.E if self.K else 6):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
                 loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, Cc[pe])
             loc[6] = np.sum(Ae * Bw, axis=1)
