@@ -59,12 +59,13 @@ PREDICT_CHUNK_BYTES = 12 * 2 ** 20
 
 
 def _gram_upper(J: np.ndarray) -> np.ndarray:
-    """The upper triangle of J^T J (float64) by the symmetric rank-k update (BLAS syrk: half
-    the products of a general matrix product), computed in J's precision; the lower triangle
-    holds no meaning (``_symmetrise`` once the chunks are summed)."""
+    """The upper triangle of J^T J by the symmetric rank-k update (BLAS syrk: half the products
+    of a general matrix product), in J's precision (the caller adds it into its float64 sum: a
+    float32 matrix is widened element by element there, exactly, without a float64 copy of it);
+    the lower triangle holds no meaning (``_symmetrise`` once the chunks are summed)."""
     from scipy.linalg import blas
     f = blas.ssyrk if J.dtype == np.float32 else blas.dsyrk
-    return np.asarray(f(1.0, J.T, trans=0, lower=0), dtype=np.float64)   # J.T is Fortran-ordered
+    return f(1.0, J.T, trans=0, lower=0)   # J.T is Fortran-ordered
 
 
 def _symmetrise(U: np.ndarray) -> np.ndarray:
@@ -343,20 +344,24 @@ class SurfaceModel:
         E_edge = int(eo[-1])
         ep = np.repeat(np.arange(K), ne)                 # pair of each edge
         je = np.arange(E_edge) - eo[ep]                  # edge offset inside its window
-        x = (self.t_start + (a[ep] + je)[:, None] * w - tau[ep] + resp.mode_offset())
-        se = s[ep]
-        # bin i of pair p: edges eo_p + i (left) and eo_p + i + 1 (right)
+        x = (self.t_start + (np.take(a, ep) + je)[:, None] * w - np.take(tau, ep, axis=0) + resp.mode_offset())
+        se = np.take(s, ep, axis=0)
+        # bin i of pair p: edges eo_p + i (left) and eo_p + i + 1 (right): every edge but each
+        # window's last is a left edge, so a bin's difference is the edges' consecutive one
+        # where ``left`` holds (the same subtraction as indexing both edges, one pass less)
         pe = np.repeat(np.arange(K), n)
         i = np.arange(len(pe)) - np.repeat(np.cumsum(n) - n, n)            # bin offset in its window
-        left = eo[pe] + i
+        left = np.ones(E_edge, bool)
+        left[eo[1:][ne > 0] - 1] = False
+        left = left[:-1]
         out = {"pe": pe, "kk": a[pe] + i, "s": s}
         if not need_parts:
             F = resp.cdf(x, se)
-            out["B"] = F[left + 1] - F[left]
+            out["B"] = np.diff(F, axis=0)[left]
             return out
         parts = resp.parts(x, se, need_tail=need_tail)
         for key, arr in zip(("B", "dF", "dF1", "dFt"), parts):
-            out[key] = arr[left + 1] - arr[left]
+            out[key] = np.diff(arr, axis=0)[left]
         return out
 
     def _chunks(self, per_trace_bytes: int, cap: int | None = None):
@@ -384,7 +389,7 @@ class SurfaceModel:
         # a node of albedo zero deposits exact zeros: its pairs get no window
         win = self._windows(st, resp, G[..., 1], G[..., 2], False, False, st.rho != 0)
         pe = win["pe"]
-        val = np.einsum("es,es->e", G[..., 0][pe], win["B"]) * np.tile(st.rho, t1 - t0)[pe]
+        val = np.einsum("es,es->e", np.take(G[..., 0], pe, axis=0), win["B"]) * np.take(np.tile(st.rho, t1 - t0), pe)
         nt = t1 - t0
         return np.bincount(self._rows(pe, win["kk"]), val, minlength=nt * self.T).reshape(nt, self.T)
 
@@ -442,9 +447,10 @@ class SurfaceModel:
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
             win = self._windows(st, resp, tau, c2, True, need_tail, active)
             pe, Bw, dF, dF1 = win["pe"], win["B"], win["dF"], win["dF1"]   # (E,), (E, S)
-            s = win["s"][pe]
-            rr = np.tile(rho, nt)[pe][:, None]
-            Ae = A[pe]
+            # (np.take: the same rows as fancy indexing, gathered faster)
+            s = np.take(win["s"], pe, axis=0)
+            rr = np.take(np.tile(rho, nt), pe)[:, None]
+            Ae = np.take(A, pe, axis=0)
             Ar = Ae * rr
             rows_loc = self._rows(pe, win["kk"])
 
@@ -462,12 +468,16 @@ class SurfaceModel:
             #   d m / d p_c = sum_s rho B dA_c + rho A (s dF1 ds_c - dF dtau_c): the window bins'
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
             ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 8)
-            Q = np.hstack([rr * Bw, Ar * (s * dF1), -Ar * dF])
+            S3 = Bw.shape[1]
+            Q = np.empty((len(pe), 3 * S3))
+            np.multiply(rr, Bw, out=Q[:, :S3])
+            np.multiply(Ar, s * dF1, out=Q[:, S3:2 * S3])
+            np.multiply(-Ar, dF, out=Q[:, 2 * S3:])
             # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
             loc = np.empty((7 + self.E if self.K else 7, len(pe)))
             for c in range(6 + self.E if self.K else 6):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
-                loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, Cc[pe])
+                loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, np.take(Cc, pe, axis=0))
             loc[6] = np.sum(Ae * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
@@ -533,8 +543,10 @@ class SurfaceModel:
         # (a pair's bin touches one node's six local unknowns), times the stacked operators
         # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
         # nodes' stencils allow); albedo columns: one entry per window bin
-        Jl = sp.csr_matrix((loc[:6].ravel(), (np.tile(rows, 6), (node[None] + N * np.arange(6)[:, None]).ravel())),
-                           shape=(R, 6 * N))
+        # (int32 indices: half the index traffic of the COO -> CSR conversion)
+        r32, n32 = rows.astype(np.int32), node.astype(np.int32)
+        cols = (n32[None] + np.int32(N) * np.arange(6, dtype=np.int32)[:, None]).ravel()
+        Jl = sp.coo_matrix((loc[:6].ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
         Jz = (Jl @ self.ops_stack).tocoo()
         del Jl
         Jc[Jz.row, Jz.col] = Jz.data
@@ -566,6 +578,7 @@ class SurfaceModel:
             B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
             if B is not None:
                 idx = 2 * N + np.array(bi)
+                H = H.astype(np.float64)
                 H[np.ix_(idx, idx)] += np.triu((B * wr[:, None]).T @ B)
         return H
 
