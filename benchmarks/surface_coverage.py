@@ -91,8 +91,12 @@ def run_one(seed: int, nodes: int, levels: int, prior, noise=None, **settings) -
             # test was taken against (``solve`` or ``estimate``)
             "pruned_settled": pruned.get("settled", True),
             "cut_reference": (res.levels[-1].get("cut_cells") or {}).get("reference"),
-            # step 4c's extents (``edge_extent``): kept or not, None when not tried
+            # step 4c's extents (``edge_extent``): kept or not, None when not tried; and the
+            # numbers of their test (the quadratic model's ratio, the probe's, the final one and
+            # the threshold), so that a change of the probe's rule can be judged on a study's rows
             "cut_extent": ((res.levels[-1].get("cut_cells") or {}).get("extent") or {}).get("kept"),
+            "cut_extent_test": {k: v for k, v in ((res.levels[-1].get("cut_cells") or {}).get("extent") or {}).items()
+                                if k in ("lr_estimate", "threshold", "probed", "lr_probe", "lr", "iterations")} or None,
             "split": steps.get("parts", 0) if steps.get("kept") else 0,
             "subsamples": int(res.levels[-1]["subsamples"]),
             "iterations": [s["iterations"] for lv in res.levels for s in lv["solves"]],
