@@ -53,13 +53,14 @@ def test_relay_amplitude_and_delay_match_transport():
     ("gaussian", "lambertian", False, (), False, 1, False, True),
     ("emg", "lambertian", True, ((0.04, 0.3),), True, 2, True, True),
     ("gaussian", "lambertian", False, (), False, 2, False, "extent"),
-    ("emg", "lambertian", True, ((0.04, 0.3),), True, 3, True, "extent")])
+    ("emg", "lambertian", True, ((0.04, 0.3),), True, 3, True, "extent"),
+    ("gaussian", "retroreflective", True, (), False, 2, True, "shear")])
 def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, confocal, slow, direct, sub, foot,
                                                                   offs):
     """g = J^T W r and H = J^T W J of SurfaceModel.linearise against central differences of
     SurfaceModel.predict, for every unknown (depths, albedos, response, slow tails, background,
     and with ``offs`` the cells' centroid offsets of some nodes, "extent": and the shrinks of
-    their emitting parts), with and without a trace
+    their emitting parts, "shear": and their shears), with and without a trace
     footprint (``Relay.footprint``: its variance depends on the depths)."""
     from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.model import SurfaceState
@@ -75,12 +76,12 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
     tail = 0.01 if kind == "emg" else 0.0
     model = SurfaceModel(grid, rl, Response(kind, 0.006, tail, slow), brdf, subsamples=sub,
                          direct=rng.uniform(0.5, 2, 5) if direct else None, offset_nodes=[0, 5, 11] if offs else None,
-                         cell_extent=offs == "extent")
-    E = 4 if offs == "extent" else 2
+                         cell_extent=offs in ("extent", "shear"), cell_shear=offs == "shear")
+    E = {"extent": 4, "shear": 5}.get(offs, 2)
     st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, tail,
                       tuple(b for _, b in slow), 0.01, 0.05, 0.2,
                       off=(np.c_[rng.uniform(-0.02, 0.02, (3, 2)), rng.uniform(0.1, 0.6, (3, E - 2))]
-                           if offs else None))
+                           * np.r_[1, 1, 1, 1, -1][:E] if offs else None))
     assert model.npar == 2 * grid.n + len(model.glob) + (3 * E if offs else 0)
     y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
     wgt = rng.uniform(0.5, 2, (5, 150))

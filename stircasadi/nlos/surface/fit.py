@@ -54,7 +54,7 @@ Steps
    std, depths alternating row by row; with, 1.000 and 23 of 24 within 2 std. Where the
    centroids are kept, the cut cells' emitting parts may also get a free extent per side
    (``SurfaceSettings.edge_extent``): probed where the quadratic model at the centroids'
-   solution passes the same test, kept where the probe does (``["cut_cells"]["extent"]``).
+   solution passes the same test, kept where the probe does (``["cut_cells"]["extent"]``; ``edge_shear``: sheared).
    4d. Quadrature (``SurfaceSettings.quadrature_check``, ``quadrature.py``): while one more
    sub-sample per cell side changes a lit node's solution (to first order) by half its std or
    more, the level is solved again with it (up to 4 x 4, then a reason; ``["quadrature"]``).
@@ -242,7 +242,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
 
         def make_model(nodes=None, rl=rl, sub=sub, extent=False):      # the level's model
             return SurfaceModel(level["grid"], rl, r0, st.brdf, st.fit_sigma, chunk, sub, q_dir, workers,
-                                offset_nodes=nodes, cell_extent=extent)
+                                offset_nodes=nodes, cell_extent=extent, cell_shear=st.edge_shear)
 
         held = {"pruned": np.zeros(grid.n, bool)}       # step 4b's nodes, albedo held at zero
 
@@ -441,7 +441,8 @@ def _explained(model: SurfaceModel, state: SurfaceState, full, st: SurfaceSettin
     rf = relay.window(lo, relay.grid.end)
     rf.gain = rf.gain * gain_scale
     m_full = SurfaceModel(model.grid, rf, model.response(state), model.brdf, False, model.chunk_bytes,
-                          model.sub, q_dir, model.workers, offset_nodes=model.onodes, cell_extent=model.extent)
+                          model.sub, q_dir, model.workers, offset_nodes=model.onodes,
+                          cell_extent=model.extent, cell_shear=model.shear)
     pred = m_full.predict(state)
     back = m_full.background(state)[0]
     wgt, _ = noise_weights(rf.traces, rf.sigma, st.noise_sigma)

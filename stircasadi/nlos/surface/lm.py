@@ -27,6 +27,9 @@ __all__ = ["solve_lm", "Bounds", "first_linearisation", "last_decrease", "nested
 
 #: the largest shrink of a cut cell's emitting part per side (``SurfaceModel(cell_extent=True)``)
 SHRINK_MAX = 0.9
+#: the largest shear |k| of a cut cell's emitting part (``SurfaceModel(cell_shear=True)``): a
+#: right triangle of the cell's legs needs 0.41
+SHEAR_MAX = 0.9
 
 
 class Bounds:
@@ -50,8 +53,8 @@ class Bounds:
         if model.K:     # the cells' centroid offsets stay inside their cells (any shrinks in [0, SHRINK_MAX])
             g1 = 2 * N + len(model.glob)
             hx, hy = 0.5 * model.grid.hx, 0.5 * model.grid.hy
-            lo[g1:] = np.tile([-hx, -hy, 0.0, 0.0][:model.E], model.K)
-            hi[g1:] = np.tile([hx, hy, SHRINK_MAX, SHRINK_MAX][:model.E], model.K)
+            lo[g1:] = np.tile([-hx, -hy, 0.0, 0.0, -SHEAR_MAX][:model.E], model.K)
+            hi[g1:] = np.tile([hx, hy, SHRINK_MAX, SHRINK_MAX, SHEAR_MAX][:model.E], model.K)
         self.lo, self.hi = lo, hi
         self.beta_idx = np.array([2 * N + i for i, k in enumerate(model.glob) if k.startswith("beta")], int)
 

@@ -88,7 +88,8 @@ class SurfaceState:
     bgtau: float = 0.1
     #: (K, 2) in-plane centroid offsets (along u, v; metres) of the cells of the model's
     #: ``offset_nodes`` (a cell the surface's edge cuts emits from its covered part), then with
-    #: ``cell_extent`` (K, 4): also the shrink (s_u, s_v) of the emitting part's extent; or None
+    #: ``cell_extent`` (K, 4): also the shrink (s_u, s_v) of the emitting part's extent, and with
+    #: ``cell_shear`` (K, 5): its shear k; or None
     off: np.ndarray | None = None
 
     def copy(self) -> "SurfaceState":
@@ -125,11 +126,17 @@ class SurfaceModel:
     cell_extent : the offset nodes' cells also emit from a part (1 - s_u) x (1 - s_v) of the
         cell's sides (its sub-samples and delay spread shrink about the centroid; the area, and
         so the albedo's meaning, stay the cell's), s_u, s_v unknowns packed after each offset.
+    cell_shear : with ``cell_extent``, the emitting part is a parallelogram, not a rectangle: its
+        v side leans by k (a sub-sample at (du, dv) of the cell sits at (du fu + k dv, dv fv) from
+        the centroid), unknowns packed after the shrinks. Its second moments are then any 2 x 2
+        covariance (a Cholesky factor): a triangle cut by an oblique edge has a u-v covariance
+        that no axis-aligned rectangle has.
     """
 
     def __init__(self, grid: DepthGrid, relay: Relay, response: Response, brdf: str = "lambertian",
                  fit_shape: bool = True, chunk_bytes: int = 192 * 2 ** 20, subsamples: int = 1,
-                 direct: np.ndarray | None = None, workers: int = 1, offset_nodes=None, cell_extent=False):
+                 direct: np.ndarray | None = None, workers: int = 1, offset_nodes=None, cell_extent=False,
+                 cell_shear=False):
         if brdf not in BRDFS:
             raise ReconstructionError(f"brdf must be one of {BRDFS}; got {brdf!r}.")
         if brdf == "retroreflective" and not relay.confocal:
@@ -164,7 +171,8 @@ class SurfaceModel:
             raise ReconstructionError(f"offset_nodes must be node indices in 0..{self.N - 1}; got {on.min()}..{on.max()}.")
         self.onodes, self.K = on, int(on.size)
         self.extent = bool(cell_extent)
-        self.E = 4 if self.extent else 2         # unknowns per offset node (ox, oy[, s_u, s_v])
+        self.shear = bool(cell_shear) and self.extent
+        self.E = 2 + 2 * self.extent + self.shear      # unknowns per offset node (ox, oy[, s_u, s_v[, k]])
         self._build()
         self._maps: dict = {}
 
@@ -182,12 +190,12 @@ class SurfaceModel:
 
     def centroid_offsets(self, st: SurfaceState) -> np.ndarray:
         """The state's (K, E) centroid offsets [and shrinks] (zeros where it holds none; a
-        state's (K, 2) offsets get zero shrinks)."""
+        state's (K, 2) offsets get zero shrinks, and (K, 4) a zero shear)."""
         if st.off is None or self.K == 0:
             return np.zeros((self.K, self.E))
         off = np.asarray(st.off, float)
-        if off.shape == (self.K, 2) and self.E == 4:
-            off = np.hstack([off, np.zeros((self.K, 2))])
+        if off.shape[0] == self.K and off.ndim == 2 and off.shape[1] < self.E:   # nested: zeros
+            off = np.hstack([off, np.zeros((self.K, self.E - off.shape[1]))])
         if off.shape != (self.K, self.E):
             raise ReconstructionError(f"The state's offsets have shape {off.shape}; the model has {self.K} offset nodes.")
         return off
@@ -235,18 +243,19 @@ class SurfaceModel:
     # ------------------------------------------------------------------ CasADi pair geometry
     def _build(self):
         c, u, v, wv = (ca.DM(np.asarray(a, float)) for a in self.grid.frame)
-        # z, gx, gy, zxx, zyy, zxy of the node, its cell's centroid ox, oy [and shrink su, sv]
+        # z, gx, gy, zxx, zyy, zxy of the node, its cell's centroid ox, oy [shrink su, sv [shear k]]
         p = ca.SX.sym("p", 6 + self.E)
         q = ca.SX.sym("q", 21)         # Xb(3) L(3) D(3) nL(3) nD(3) leg gain fu2 fv2 dx dy
         z, gx0, gy0, zxx, zyy, zxy, ox, oy = (p[i] for i in range(8))
         fu, fv = (1 - p[8], 1 - p[9]) if self.extent else (1.0, 1.0)
-        dx, dy = (q[19] * fu + ox, q[20] * fv + oy) if self.extent else (q[19] + ox, q[20] + oy)
+        k = p[10] if self.shear else 0.0
+        dx, dy = (q[19] * fu + k * q[20] + ox, q[20] * fv + oy) if self.extent else (q[19] + ox, q[20] + oy)
         # the sub-sample at in-plane offset (dx, dy) from the node (its cell's centroid moved by
         # (ox, oy)) lies on the node's second-order patch
         gx = gx0 + zxx * dx + zxy * dy
         gy = gy0 + zxy * dx + zyy * dy
         s = ca.sqrt(1 + gx ** 2 + gy ** 2)
-        ex, ey = (ox - q[19] * p[8], oy - q[20] * p[9]) if self.extent else (ox, oy)
+        ex, ey = (ox - q[19] * p[8] + k * q[20], oy - q[20] * p[9]) if self.extent else (ox, oy)
         X = (q[0:3] + ex * u + ey * v
              + (z + gx0 * dx + gy0 * dy + 0.5 * (zxx * dx * dx + zyy * dy * dy) + zxy * dx * dy) * wv)
         nX = -(wv - gx * u - gy * v) / s
@@ -255,7 +264,9 @@ class SurfaceModel:
         L, D = q[3:6], q[6:9]
         amp = relay_amplitude(L, D, q[9:12], q[12:15], X, nX, area, 1.0, q[16], brdf=self.brdf)
         tau = relay_delay(L, D, X, q[15])
-        c2 = cell_variance(L, D, X, u + gx * wv, v + gy * wv, hx * fu, hy * fv)    # (fu = 1: exact)
+        tu, tv = u + gx * wv, v + gy * wv      # the sub-cell's sides hx fu tu and hy (k tu + fv tv)
+        c2 = (cell_variance(L, D, X, tu, k * tu + fv * tv, hx * fu, hy) if self.shear
+              else cell_variance(L, D, X, tu, tv, hx * fu, hy * fv))    # (fu = 1: exact)
         if self.footprint:     # a trace summing several scan points (Relay.footprint)
             c2 = c2 + footprint_variance(L, D, X, u, v, q[17], q[18])
         out = ca.vertcat(amp, tau, c2)

@@ -65,6 +65,10 @@ class SurfaceSettings:
     #: their centroids (``SurfaceModel(cell_extent=True)``), kept by their own ratio test
     #: (``cuts.py``); False: centroids only
     edge_extent: bool = True
+    #: with ``edge_extent``: the emitting parts are parallelograms (a shear per cut cell beside its
+    #: shrinks, ``SurfaceModel(cell_shear=True)``), tested with them; False: rectangles. Lowers
+    #: chi2/dof on most low-noise twins but is not the default (``cuts.py``: seed 819)
+    edge_shear: bool = False
     #: nodes whose albedo explains less of the data than noise would (``prune.py``: each node's
     #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01) get albedo zero and the
     #: last level is solved again, kept by a likelihood-ratio test; False: every node stays free
