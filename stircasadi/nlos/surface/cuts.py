@@ -55,8 +55,8 @@ fresh seeds; each against the default in the same session): chi2/dof fell on 38 
 900-923 10 / 14 / 0 with 59 of 66 (default: 9 / 15 / 0, 57 of 64); at the drawn noise 22 / 2 / 0
 and 40 of 44 either way. Not the default because of seed 819 (a spherical cap, paired relay),
 OK with 2 of its 10 claimed numbers beyond 2 std and SILENT-WRONG with 3: its depths alternate
-node by node along x by about +-100 um (2-3 std) in both models, the mode central differences
-leave to the depths alone, and the shear moves one albedo from 1.03 to 2.03 std. (A test of the
+node by node along x by about +-100 um (2-3 std) in both models, a mode the normals' central
+differences do not see, and the shear moves one albedo from 1.03 to 2.03 std. (A test of the
 depth map's fourth differences against their covariance does not catch it: BENCHMARKS.md.)
 """
 from __future__ import annotations
