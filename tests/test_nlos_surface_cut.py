@@ -176,6 +176,11 @@ def test_offsets_of_the_wrong_shape_or_nodes_are_refused():
     st = SurfaceState(np.full(9, 0.4), np.full(9, 0.5), 0.008, 0.0, (), 0.0, off=np.zeros((3, 2)))
     with pytest.raises(ReconstructionError, match="offset nodes"):
         m.predict(st)
+    from stircasadi.nlos.surface import SurfaceSettings
+    for bad in ({"edge_extent": False}, {"edge_offsets": False}):
+        with pytest.raises(ReconstructionError, match="edge_shear leans the cut cells' shrunk emitting parts"):
+            SurfaceSettings(edge_shear=True, **bad).validate()
+    assert SurfaceSettings(edge_shear=True).validate().edge_shear
 
 
 def test_a_depth_step_between_two_parts_of_the_mask_is_found_and_a_steep_plane_is_not():

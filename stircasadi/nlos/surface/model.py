@@ -194,7 +194,7 @@ class SurfaceModel:
         if st.off is None or self.K == 0:
             return np.zeros((self.K, self.E))
         off = np.asarray(st.off, float)
-        if off.shape[0] == self.K and off.ndim == 2 and off.shape[1] < self.E:   # nested: zeros
+        if off.ndim == 2 and off.shape[0] == self.K and off.shape[1] < self.E:   # nested: zeros
             off = np.hstack([off, np.zeros((self.K, self.E - off.shape[1]))])
         if off.shape != (self.K, self.E):
             raise ReconstructionError(f"The state's offsets have shape {off.shape}; the model has {self.K} offset nodes.")

@@ -153,6 +153,9 @@ class SurfaceSettings:
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
         if not (float(self.albedo_prior) >= 0 and math.isfinite(float(self.albedo_prior))):
             raise ReconstructionError(f"albedo_prior must be a finite weight >= 0; got {self.albedo_prior!r}.")
+        if self.edge_shear and not (self.edge_offsets and self.edge_extent):
+            raise ReconstructionError("edge_shear leans the cut cells' shrunk emitting parts: it needs "
+                                      "edge_offsets=True and edge_extent=True (or set edge_shear=False).")
         if float(self.albedo_prior) > 0 and self.prior == "none":
             raise ReconstructionError("albedo_prior weighs the albedo's penalty under the smoothness prior's "
                                       "weight: set prior='auto', 'gcv' or a weight as well (prior='none' has none).")
