@@ -258,12 +258,17 @@ def confocal_grid(relay: Relay, tol: float = 1e-3) -> ConfocalGrid:
         raise ReconstructionError(f"LCT and f-k migration need a planar wall; the scan points leave "
                                   f"its plane by up to {np.max(np.abs(h)):.3g} m. Use method='bp'.")
     a, b = rel @ u, rel @ v
+    q = tol * max(span, 1e-9)
 
-    def axis(q):
-        vals = np.unique(np.round(q / max(span, 1e-9) / tol) * tol * max(span, 1e-9))
-        return vals
+    def axis(c):
+        """The distinct positions along one axis (sorted coordinates closer than ``tol`` of the
+        span are one) as the mean of their members' coordinates, and each point's index into them."""
+        order = np.argsort(c, kind="stable")
+        idx = np.empty(len(c), dtype=np.int64)
+        idx[order] = np.concatenate([[0], np.cumsum(np.diff(c[order]) > q)])
+        return np.bincount(idx, c) / np.bincount(idx), idx
 
-    xa, ya = axis(a), axis(b)
+    (xa, ix), (ya, iy) = axis(a), axis(b)
     n = len(xa)
     if len(ya) != n or n * n != relay.n_traces or n < 2:
         raise ReconstructionError(f"LCT and f-k migration need a full square N x N scan grid; got "
@@ -272,8 +277,9 @@ def confocal_grid(relay: Relay, tol: float = 1e-3) -> ConfocalGrid:
     if np.max(np.abs(np.diff(xa) - step)) > tol * span or np.max(np.abs(np.diff(ya) - step)) > tol * span:
         raise ReconstructionError("LCT and f-k migration need an evenly spaced square scan grid "
                                   "with equal steps along both axes.")
-    ix = np.rint((a - xa[0]) / step).astype(int)
-    iy = np.rint((b - ya[0]) / step).astype(int)
+    if np.any(np.bincount(iy * n + ix, minlength=n * n) != 1):
+        raise ReconstructionError("LCT and f-k migration need one trace per scan grid point; some "
+                                  "point of this scan holds two traces and another none.")
     data = np.zeros((n, n, relay.grid.n_bins), dtype=np.float32)
     data[iy, ix] = relay.traces
     return ConfocalGrid(data, xa, ya, relay.grid, relay.frame)
