@@ -86,8 +86,8 @@ def stanford_twin(path, depth=0.400, side=0.25, tilt_deg=0.0, brdf="retroreflect
     k = np.arange(-pad, nf)
     K = response_cdf(resp, (k + 0.5) * h + m0) - response_cdf(resp, (k - 0.5) * h + m0)
     lin = np.linspace(-half, half, n)
-    yy, xx = np.meshgrid(lin, lin, indexing="ij")
-    P = np.stack([xx.ravel(), yy.ravel(), np.zeros(n * n)], 1)
+    si, sj = np.meshgrid(lin, lin, indexing="ij")
+    P = np.stack([si.ravel(), -sj.ravel(), np.zeros(n * n)], 1)     # the importer's axes
     g = np.arange(-side / 2 + h_q / 2, side / 2, h_q)
     gy, gx = np.meshgrid(g, g, indexing="ij")
     t = np.tan(np.radians(tilt_deg))

@@ -3,16 +3,28 @@
 ``maps_figure``: the volumetric initialiser's depth and albedo beside the surface fit's depth,
 albedo and depth std (masked). ``view3d_figure``: the surface (or depth-map) points in 3-D
 with the relay points. Neglects nothing; pictures only.
+
+Maps are drawn as seen from the relay wall, looking into the hidden scene (``wall_view``): the
+relay frame (u, v, w) is right-handed with w towards the hidden scene, so that view has v up and
+u to the LEFT. A sign that faces the wall then reads as it does to someone standing at the wall;
+drawn with u to the right (``imshow``'s default) it would be mirrored.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["maps_figure", "view3d_figure"]
+__all__ = ["maps_figure", "view3d_figure", "wall_view"]
 
 
-def _ext(x, y):
-    return [x[0], x[-1], y[0], y[-1]]
+def wall_view(ax, img, x, y, **imshow_kw):
+    """Draw the map ``img[iy, ix]`` over the relay-frame coordinates ``x``, ``y`` (ascending) as
+    seen from the wall: y up, x increasing to the left (see the module docstring)."""
+    im = ax.imshow(img, origin="lower", extent=[x[0], x[-1], y[0], y[-1]], **imshow_kw)
+    if not ax.xaxis_inverted():
+        ax.invert_xaxis()
+    ax.set_xlabel("x (m), seen from the wall")
+    ax.set_ylabel("y (m)")
+    return im
 
 
 def maps_figure(est):
@@ -28,9 +40,8 @@ def maps_figure(est):
                    ("depth std (mm)", np.where(s.mask, 1e3 * s.depth_std, np.nan), g, "magma")]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.2))
     for ax, (title, img, gr, cmap) in zip(np.atleast_1d(axes), panels):
-        im = ax.imshow(img, origin="lower", extent=_ext(gr.x, gr.y), cmap=cmap)
+        im = wall_view(ax, img, gr.x, gr.y, cmap=cmap)
         ax.set_title(title, fontsize=9)
-        ax.set_xlabel("x (m)")
         fig.colorbar(im, ax=ax, fraction=0.046)
     fig.suptitle(f"{est.method}: {est.volume.method} initialiser" + (
         f", surface chi2/dof={s.chi2_dof:.3g}" if s is not None else ""), fontsize=10)

@@ -4,8 +4,13 @@ Layout: ``rect_data`` uint16 (N, N, T) photon counts, 4 ps bins, ``width`` = HAL
 square scan (metres). Confocal, pre-rectified (t = 0 at the wall): a hidden point at depth r
 returns at t = 2 r metres of path, so ``legs_included = False``.
 
-Neglected / assumed: the files do not say which scan index is x and which is y, nor their sign;
-we take ``rect_data[i, j]`` at (x_j, y_i, 0) with x, y = linspace(-width, width, N).
+Axes: the files do not say which scan index is x and which is y, nor their sign. We take
+``rect_data[i, j]`` at (x, y, 0) = (s_i, -s_j, 0) with s = linspace(-width, width, N), the hidden
+scene at z > 0. Seen from the wall (looking along +z: x to the left, y up, as ``nlos.pictures``
+draws maps) this is the release's own front view (``cnlos_reconstruction.m`` permutes the data to
+(t, j, i), reverses i and draws j down the rows with ``imagesc``), in which the letters of the
+"S", "SU" and exit-sign scans read upright; the frame is right-handed, so nothing is mirrored
+(``tests/test_nlos_volumetric.py`` checks the diffuse "S" against a rasterised S).
 """
 from __future__ import annotations
 
@@ -56,8 +61,8 @@ def read_stanford_lct(path: str | Path, bin_width_ps: float = BIN_PS) -> Capture
     n, _, nt = rect.shape
     traces = counts(rect, "rect_data", path, NAME).reshape(n * n, nt)
     lin = np.linspace(-half, half, n)
-    yy, xx = np.meshgrid(lin, lin, indexing="ij")
-    pts = np.stack([xx.ravel(), yy.ravel(), np.zeros(n * n)], axis=1)
+    si, sj = np.meshgrid(lin, lin, indexing="ij")
+    pts = np.stack([si.ravel(), -sj.ravel(), np.zeros(n * n)], axis=1)
     ids = np.arange(n * n, dtype=np.int64)
     grid = TimeGrid(0.0, bin_width_ps * 1e-12 * C, nt)
     return Capture(grid=grid, traces=traces, pairs=np.stack([ids, ids], axis=1),
