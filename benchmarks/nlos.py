@@ -117,7 +117,8 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
                            albedo_prior=albedo_prior, quadrature_check=quadrature_check)
     dt = time.perf_counter() - t0
     s = est.surface
-    z0, tilt = s.plane()          # weighted by the nodes' precision, 1 / depth std^2
+    # weighted by the nodes' precision, 1 / depth std^2; no plane through fewer than 3 mask nodes
+    z0, tilt = s.plane() if s.mask.sum() >= 3 else (None, None)
     return {"chart": "resolution", "method": f"surface {n}x{n}", "time_s": dt,
             "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, "peak_kind": "max RSS",
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
