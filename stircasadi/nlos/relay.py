@@ -258,23 +258,28 @@ def confocal_grid(relay: Relay, tol: float = 1e-3) -> ConfocalGrid:
         raise ReconstructionError(f"LCT and f-k migration need a planar wall; the scan points leave "
                                   f"its plane by up to {np.max(np.abs(h)):.3g} m. Use method='bp'.")
     a, b = rel @ u, rel @ v
-    q = tol * max(span, 1e-9)
 
-    def axis(c):
-        """The distinct positions along one axis (sorted coordinates closer than ``tol`` of the
-        span are one) as the mean of their members' coordinates, and each point's index into them."""
-        order = np.argsort(c, kind="stable")
-        idx = np.empty(len(c), dtype=np.int64)
-        idx[order] = np.concatenate([[0], np.cumsum(np.diff(c[order]) > q)])
-        return np.bincount(idx, c) / np.bincount(idx), idx
+    def axis(q):
+        vals = np.unique(np.round(q / max(span, 1e-9) / tol) * tol * max(span, 1e-9))
+        return vals
 
-    (xa, ix), (ya, iy) = axis(a), axis(b)
+    # The grid's coordinates are the positions rounded to multiples of tol * span (up to half of
+    # that off; kept: the exact means move the initialiser's maps by < 0.1 mm, which flips
+    # knife-edge decisions of the surface fit, e.g. step 4a's split of surface_coverage seed 513).
+    xa, ya = axis(a), axis(b)
     n = len(xa)
     if len(ya) != n or n * n != relay.n_traces or n < 2:
         raise ReconstructionError(f"LCT and f-k migration need a full square N x N scan grid; got "
                                   f"{len(xa)} x {len(ya)} distinct positions for {relay.n_traces} traces.")
     step = (xa[-1] - xa[0]) / (n - 1)
-    if np.max(np.abs(np.diff(xa) - step)) > tol * span or np.max(np.abs(np.diff(ya) - step)) > tol * span:
+    ix = np.clip(np.rint((a - xa[0]) / step).astype(int), 0, n - 1)
+    iy = np.clip(np.rint((b - ya[0]) / step).astype(int), 0, n - 1)
+    # evenness is judged on the members' mean coordinates: the rounded ones of a scan summed in
+    # blocks (``subsample_confocal``) alternate by one rounding step (50.4 / 51.2 mm)
+    cx = np.bincount(ix, a, n) / np.maximum(np.bincount(ix, minlength=n), 1)
+    cy = np.bincount(iy, b, n) / np.maximum(np.bincount(iy, minlength=n), 1)
+    step_c = (cx[-1] - cx[0]) / (n - 1)
+    if np.max(np.abs(np.diff(cx) - step_c)) > tol * span or np.max(np.abs(np.diff(cy) - step_c)) > tol * span:
         raise ReconstructionError("LCT and f-k migration need an evenly spaced square scan grid "
                                   "with equal steps along both axes.")
     if np.any(np.bincount(iy * n + ix, minlength=n * n) != 1):
