@@ -19,7 +19,9 @@ the process's CPUs, at most 4, or 1 under OMP_NUM_THREADS=1; ``--threads``), ``-
 iterations per level (default 12); each row records both. ``--albedo-prior A`` adds the albedo's
 gradient penalty at relative weight A under the chosen prior (``SurfaceSettings.albedo_prior``);
 ``--no-quadrature-check`` keeps the size rule's sub-samples per cell (step 4d of the fit off):
-the row records the sub-samples the fit ended with and each check of step 4d.
+the row records the sub-samples the fit ended with and each check of step 4d. ``--turn 90``
+turns the wall's frame about its normal before the surface fit (results in nlos_turn90.json):
+the same scan in another frame, where the plane and mask should not change.
 """
 from __future__ import annotations
 
@@ -102,13 +104,27 @@ def ytal_bp(cap, cg, n, nz):
     return Volume(np.transpose(out, (2, 1, 0)).astype(np.float32), lin, lin, zs, cg.frame, "ytal-bp")
 
 
+def turned(cap, deg: int):
+    """``cap`` with its wall points turned by ``deg`` (a multiple of 90) about the wall's normal:
+    the same scan in another frame, so a fit that depends only on the data gives the same plane."""
+    if deg % 90:
+        raise SystemExit(f"--turn must be a multiple of 90 degrees; got {deg}")
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][(deg // 90) % 4]
+    for k in ("illuminated_xyz", "observed_xyz"):
+        p = np.array(getattr(cap, k), float)
+        p[:, :2] = np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], axis=1)
+        setattr(cap, k, p)
+    return cap
+
+
 def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12,
-                albedo_prior: float = 0.0, quadrature_check: bool = True) -> dict:
+                albedo_prior: float = 0.0, quadrature_check: bool = True, turn: int = 0) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
-    the process's maximum resident memory, the precision-weighted plane through the mask."""
+    the process's maximum resident memory, the precision-weighted plane through the mask
+    (``turn``: the wall's frame turned by that many degrees first)."""
     import resource
 
-    cap = read_stanford_lct(data_dir() / "otoole2018_confocal" / CHARTS["resolution"])
+    cap = turned(read_stanford_lct(data_dir() / "otoole2018_confocal" / CHARTS["resolution"]), turn)
     levels = max(1, int(round(math.log2(n / 8))) + 1)
     t0 = time.perf_counter()
     est = estimate_capture(cap, method="surface", bin_factor=4, diffuse=False, t_max=1.6, gate_m=0.72,
@@ -123,7 +139,8 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
             "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, "peak_kind": "max RSS",
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
-            "prior": prior, "prior_weight": s.prior_weight, "albedo_prior": albedo_prior, "success": s.success,
+            "prior": prior, "prior_weight": s.prior_weight, "turn_deg": turn,
+            "prior_rejected": s.levels[-1].get("lambda_rejected"), "albedo_prior": albedo_prior, "success": s.success,
             "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
             "quadrature_check": quadrature_check, "subsamples": s.levels[-1]["subsamples"],
             "quadrature": s.levels[-1].get("quadrature"), "reasons": list(s.reasons),
@@ -152,11 +169,13 @@ def main(argv=None):
                     "(the albedo's gradient penalty relative to the depth's; needs --prior)")
     ap.add_argument("--no-quadrature-check", action="store_true", help="the surface fit keeps the "
                     "sub-samples of its size rule (SurfaceSettings.quadrature_check off): what the check costs")
+    ap.add_argument("--turn", type=int, default=0, help="the surface fit's wall frame turned by this many "
+                    "degrees (0, 90, 180, 270) about the wall's normal: the fit should not change")
     ap.add_argument("--surface-one", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.surface_one is not None:
         print(json.dumps(surface_row(a.surface_one, a.prior, a.threads, a.max_iter, a.albedo_prior,
-                                     quadrature_check=not a.no_quadrature_check), default=float))
+                                     quadrature_check=not a.no_quadrature_check, turn=a.turn), default=float))
         return
     rows = []
     folder = data_dir() / "otoole2018_confocal"
@@ -202,7 +221,8 @@ def main(argv=None):
             # many NumPy allocations several-fold) and the process's maximum resident memory
             # (CasADi's buffers included)
             out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior,
-                                  "--max-iter", str(a.max_iter), "--albedo-prior", str(a.albedo_prior)]
+                                  "--max-iter", str(a.max_iter), "--albedo-prior", str(a.albedo_prior),
+                                  "--turn", str(a.turn)]
                                  + (["--no-quadrature-check"] if a.no_quadrature_check else [])
                                  + ([] if a.threads is None else ["--threads", str(a.threads)]),
                                  capture_output=True, text=True)
@@ -218,7 +238,7 @@ def main(argv=None):
               f"{(d if d is not None else float('nan')):>10.4f}")
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
-    (out / "nlos.json").write_text(json.dumps(rows, indent=1))
+    (out / ("nlos.json" if not a.turn else f"nlos_turn{a.turn}.json")).write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

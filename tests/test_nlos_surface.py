@@ -656,9 +656,21 @@ def test_automatic_prior_weight_starts_the_finer_level(tilted_plane):
     assert lv[2]["solves"][0]["lam"] == lv[1]["lam_next"] and res.prior_weight > 0 and "lambda_curve" in lv[2]
     # each choice says what it compared against; the result carries the last one
     for l in lv:
-        assert [c["lam"] for c in l["lambda_choice"]][0] == l.get("lam_next", l["lambda_choice"][0]["lam"])
+        if "lam_next" in l:     # a coarse level passes on its last choice
+            assert l["lambda_choice"][-1]["lam"] == l["lam_next"]
         assert all(c["target"] >= c["c_ref"] and c["lam_unbounded"] >= 0 for c in l["lambda_choice"])
     assert res.extras["prior_choice"] == lv[2]["lambda_choice"][-1]
+    # the first level is solved again from its solution while its weight moves by more than 3x
+    # (at most FIRST_SOLVES solves), each re-solve with the weight the solve before it chose
+    from stircasadi.nlos.surface.fit import FIRST_SOLVES
+    s0, c0 = lv[0]["solves"], lv[0]["lambda_choice"]
+    assert 1 <= len(s0) == len(c0) <= FIRST_SOLVES and len(lv[1]["solves"]) >= 1
+    for k in range(len(s0)):
+        prev = s0[k]["lam"]
+        moved = c0[k]["lam"] > 3 * prev or c0[k]["lam"] < prev / 3
+        assert moved == (k + 1 < len(s0)) or k + 1 == FIRST_SOLVES
+        if k + 1 < len(s0):
+            assert s0[k + 1]["lam"] == c0[k]["lam"]
     # every solve's history (f before, f after, predicted decrease, damping, largest depth step):
     # each accepted step lowers F, the steps chain, the last is the solve's F, and the quadratic
     # model's predicted decrease is what the step delivered once the steps are small
@@ -799,6 +811,46 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
     assert not any(r.startswith("level") for r in res.reasons)
     note = [n for n in res.extras["notes"] if n.startswith("level 0 (4x4)")]
     assert len(note) == 1 and "not converged" in note[0] and "only starts the next one" in note[0]
+
+
+def test_a_raised_weight_the_data_reject_is_undone(tilted_plane, monkeypatch):
+    """The last level's discrepancy weight comes from a linearisation, which does not hold where
+    the regularised step moves depths beyond the response's width: a raised weight whose own
+    solve ends above the chi^2 its choice allowed is rejected and the solve before it kept. On the
+    tilted plane (prior over depths and albedos, one level) the first choice is replaced by 10^6
+    times itself: the flattened albedos' solve ends far above the target, the result keeps the
+    first solve's weight, state and chi^2 (bit for bit against the same fit stopped there), and
+    says so in ``levels[-1]["lambda_rejected"]`` and a note. (The real choice, 63.7, is rejected
+    too on this 6 x 6 grid: its solve ends at chi^2 10 261 against the 9 063 allowed.)"""
+    import stircasadi.nlos.surface.fit as F
+    from stircasadi.nlos import VolumeSettings, from_capture, lct
+    from stircasadi.nlos.surface import SurfaceSettings, fit_surface
+
+    cap, _ = tilted_plane
+    relay = from_capture(cap)
+    relay.gain[:] = (WALL_RHO / math.pi) ** 2
+    init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
+    st = SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=30, prior=0.0,
+                         albedo_prior=1.0, prune=False, edge_offsets=False, quadrature_check=False,
+                         split_steps=False)
+    plain = fit_surface(relay, init, replace(st, prior=0.0), gate=0.2)     # the first solve alone
+    choose, calls = F._choose_lambda, []
+
+    def huge(*a, **k):
+        lam, curve = choose(*a, **k)
+        calls.append(lam)
+        return (1e6 * max(lam, 1.0) if len(calls) == 1 else lam), curve
+
+    monkeypatch.setattr(F, "_choose_lambda", huge)
+    res = fit_surface(relay, init, replace(st, prior="auto"), gate=0.2)
+    lv = res.levels[-1]
+    rej = lv["lambda_rejected"]
+    assert [s_["lam"] for s_ in lv["solves"]] == [0.0, rej["lam"]] and rej["lam"] >= 1e6
+    assert rej["chi2"] > rej["target"] and rej["kept_lam"] == 0.0 == res.prior_weight
+    np.testing.assert_array_equal(res.depth, plain.depth)
+    np.testing.assert_array_equal(res.albedo, plain.albedo)
+    assert res.chi2_dof == plain.chi2_dof
+    assert any("was rejected" in n_ for n_ in res.extras["notes"])
 
 
 def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane):

@@ -26,8 +26,11 @@ Steps
    (one weight for both: on the tilted-plane twin with 12 x 12 nodes over 8 x 8 traces the
    albedo error halves and the depth's weight drops 1 117 -> 35, its error 0.18 -> 0.46 mm);
    a coarse level's weight starts the next level (the penalty approximates the integral of
-   (del^2 z)^2, independent of the spacing), and the last level is re-solved when its weight
-   moved by more than 3x (chosen at the level's start, from a chi^2 far above what it reaches,
+   (del^2 z)^2, independent of the spacing; the first level, solved without a prior, is solved
+   again while its weight moves by more than 3x, up to ``FIRST_SOLVES`` solves: a weight chosen
+   where an iteration limit cut the solve confirms itself), and the last level is re-solved when its weight
+   moved by more than 3x, a raised weight rejected (the solve before it kept, ``["lambda_rejected"]``)
+   where its solve ends above the chi^2 its choice allowed (chosen at the level's start, from a chi^2 far above what it reaches,
    the weight came out too large: 32 x 32 tilt 10.8 against 2.4 deg on the resolution chart).
    4a. Depth steps (``SurfaceSettings.split_steps``, ``steps.py``): where the lit nodes fall
    into parts linked only by gentle slopes and two of them (at least 3 nodes and a quarter of
@@ -103,19 +106,17 @@ from scipy.ndimage import binary_dilation, uniform_filter1d
 from scipy.stats import chi2 as _chi2_dist
 
 from ...errors import ReconstructionError
-from ...irf import GaussianIRF
 from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
 from .grid import DepthGrid, normal_std
-from .start import extent as _extent, initial as _initial
+from .start import extent as _extent, initial as _initial, response0 as _response0, window as _window
 from .prior import GCV_PROBES, _choose_lambda, prior_operator  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, cell_offsets, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .quadrature import refine_quadrature
 from .prune import prune_nodes
 from .steps import step_labels
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
-from .direct import direct_return
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
@@ -124,10 +125,19 @@ from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
 
-__all__ = ["fit_surface", "noise_weights", "DETECT_P"]
+__all__ = ["fit_surface", "noise_weights", "DETECT_P", "FIRST_SOLVES"]
 
 #: false-alarm probability of the surface detection test (step 5)
 DETECT_P = 1e-3
+#: with prior="auto" or "gcv", the most solves of the first (coarsest) level: it starts without
+#: a prior, and its weight, chosen where its iteration limit cut the solve, confirms itself (a
+#: large weight keeps the state far from the data's optimum, where no trusted step finds a lower
+#: chi^2), so it is solved again from its solution while the weight moves by more than 3x. On the
+#: real resolution chart (16 x 16 nodes over 16 x 16 traces, 12 iterations per solve) one solve
+#: passed the next level a weight of 7 027 in one frame and 2 251 in the same frame turned by 90
+#: deg (final weights 7 027 against 38, chi2/dof 4.87 against 3.02, 25 against 42 mask nodes);
+#: with 3 solves 406 and 227 (final 40 against 23, 2.95 against 2.90, 44 against 40), 10 s more
+FIRST_SOLVES = 3
 
 _log = get_logger("stircasadi.nlos.surface")
 
@@ -144,45 +154,6 @@ def noise_weights(y: np.ndarray, sigma, override: float | None = None) -> tuple[
     s = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
     s = max(s, 1e-6 * float(np.max(np.abs(y))), 1e-300)
     return np.full(y.shape, 1.0 / s ** 2), "MAD of first differences"
-
-
-def _response0(relay: Relay, st: SurfaceSettings, gate):
-    """The starting response and the direct return's per-trace amplitude (or None): the
-    relay's Gaussian IRF; else the response measured on the relay's direct return
-    (``direct.py``); else a single-photon emg of 1.5 bins."""
-    irf = relay.irf
-    gauss = isinstance(irf, GaussianIRF)
-    if st.response == "auto" and not gauss and st.direct != "none":
-        dr = direct_return(relay, gate)
-        if dr is not None:
-            r = dr.response
-            if st.sigma0 is not None or st.tail0 is not None:
-                r = r.with_params(st.sigma0 or r.sigma, st.tail0 if r.kind == "emg" else None)
-            return r, dr.q
-    kind = st.response if st.response != "auto" else ("gaussian" if gauss else "emg")
-    if st.sigma0 is not None:
-        sig = float(st.sigma0)
-    elif irf is not None and getattr(irf, "sigma", 0) > 0:
-        sig = float(irf.sigma) / (1.0 if kind == "gaussian" else math.sqrt(2.0))
-    else:
-        sig = 1.5 * relay.grid.bin_width
-    tail = (float(st.tail0) if st.tail0 is not None else 2.0 * sig) if kind == "emg" else 0.0
-    return Response(kind, sig, tail), None
-
-
-def _window(relay: Relay, grid: DepthGrid, z0, resp_hi: Response, cell: float, pad: float, gate,
-            slow_pad: float = 0.0):
-    """The relay cut to the bins the level's paths can reach (chunked over traces)."""
-    X, _, _ = grid.geometry(z0)
-    lo_d, hi_d = np.inf, -np.inf
-    for t0 in range(0, relay.n_traces, 256):
-        sl = slice(t0, t0 + 256)
-        d = (np.linalg.norm(relay.L[sl, None] - X[None], axis=-1)
-             + np.linalg.norm(relay.D[sl, None] - X[None], axis=-1) + relay.leg[sl, None])
-        lo_d, hi_d = min(lo_d, float(d.min())), max(hi_d, float(d.max()))
-    a, b = resp_hi.support(math.sqrt(resp_hi.sigma ** 2 + cell ** 2))
-    lo = max(lo_d + a - pad, gate if gate is not None else -np.inf)
-    return relay.window(lo, hi_d + b + pad + slow_pad)
 
 
 def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = None,
@@ -290,8 +261,12 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 "solves": []}
         t_lvl = time.perf_counter()
         auto = st.prior in ("auto", "gcv")
-        lin = None
-        for rep in range(2 if (auto and last) else 1):
+        lin = back = None
+        # with a data-chosen weight the last level is solved again once where its weight moved by
+        # more than 3x, and the first (coarsest) level up to FIRST_SOLVES times while it does (its
+        # first solve has no prior: see FIRST_SOLVES)
+        reps = (2 if last else FIRST_SOLVES if li == 0 else 1) if auto else 1
+        for rep in range(reps):
             # a re-solve starts where the weight was chosen: that linearisation is its first step's
             res = solve(model, bounds, state, lin0=lin if rep else None)
             state = res["state"]
@@ -301,6 +276,20 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
             if not auto:
                 break
             lin = model.linearise(state, y, wgt, dtype=np.float64)
+            if rep and last and back is not None and lam > back["lam"] and lin["chi2"] > back["target"]:
+                # the raised weight's solve ends above the chi^2 its choice allowed: the linearised
+                # prediction it was chosen by does not hold (depth steps beyond the response's
+                # width), so the data reject it and the level keeps the solve before it
+                rej = {"lam": float(lam), "chi2": float(lin["chi2"]), "target": float(back["target"]),
+                       "kept_lam": float(back["lam"])}
+                info["lambda_rejected"] = rej
+                notes.append(f"level {li} ({n}x{n}): the discrepancy weight {lam:.4g} was rejected: its solve "
+                             f"ended at chi2 {rej['chi2']:.6g}, above the {rej['target']:.6g} it was chosen for "
+                             f"(the linearisation did not hold); the weight stays {back['lam']:.4g}")
+                _log.info("level %d (%dx%d): weight %.4g rejected (chi2 %.6g > target %.6g), kept %.4g",
+                          li, n, n, lam, rej["chi2"], rej["target"], back["lam"])
+                res, state, lin, lam = back["res"], back["state"], back["lin"], back["lam"]
+                break
             dof = max(int(y.size) - model.npar, 1)
             ci = {}
             new_lam, curve = _choose_lambda(lin["H"], lin["g"], lin["chi2"], dof, R, grid.n, lam,
@@ -308,6 +297,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                                                rule="gcv" if st.prior == "gcv" else "discrepancy")
             info["lambda_curve"] = [(float(a), float(b)) for a, b in curve]
             info.setdefault("lambda_choice", []).append(ci | {"lam": float(new_lam)})
+            moved = (new_lam > 3 * lam or new_lam < lam / 3) and not (new_lam == 0 and lam == 0)
             if not last:
                 # the penalty sum (Lap z / h)^2 (Lap: unit-spacing stencil, ~ h^2 del^2 z) is the
                 # integral of (del^2 z)^2 over the extent whatever the spacing, so a coarse
@@ -315,11 +305,13 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
                 # (a fine level solved without a prior is ill-posed: nodes the traces barely
                 # separate trade depth against albedo and grow spikes)
                 info["lam_next"] = float(new_lam)
-                lam = new_lam
-                break
-            if rep == 0 and (new_lam > 3 * lam or new_lam < lam / 3) and not (new_lam == 0 and lam == 0):
+            if moved and rep + 1 < reps:
+                back = {"res": res, "state": state, "lin": lin, "lam": lam, "target": ci.get("target")}
+                back = back if (last and back["target"] is not None) else None
                 lam = new_lam
                 continue
+            if not last:
+                lam = new_lam
             break
         if last and st.split_steps:
             # two surfaces side by side at different depths: separate height fields, the level

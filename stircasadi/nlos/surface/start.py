@@ -1,16 +1,23 @@
-"""The first level's surface from a volumetric initialiser's maps (step 1 of ``fit.py``).
+"""What the levels of ``fit.py`` start from: the first level's surface from a volumetric
+initialiser's maps (step 1), the starting response and each level's time window.
 
 When to use: called by ``fit_surface``; nothing else needs it.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from ...irf import GaussianIRF
+from ..relay import Relay
 from ..volume import Maps
+from .direct import direct_return
 from .grid import DepthGrid
+from .response import Response
 from .settings import SurfaceSettings
 
-__all__ = ["support", "initial", "extent"]
+__all__ = ["support", "initial", "extent", "response0", "window"]
 
 
 def support(maps: Maps, st: SurfaceSettings) -> np.ndarray:
@@ -44,3 +51,42 @@ def extent(maps: Maps, st: SurfaceSettings):
     gx = max(st.margin * (x1 - x0), maps.x[1] - maps.x[0])
     gy = max(st.margin * (y1 - y0), maps.y[1] - maps.y[0])
     return (x0 - gx, x1 + gx, y0 - gy, y1 + gy)
+
+
+def response0(relay: Relay, st: SurfaceSettings, gate):
+    """The starting response and the direct return's per-trace amplitude (or None): the
+    relay's Gaussian IRF; else the response measured on the relay's direct return
+    (``direct.py``); else a single-photon emg of 1.5 bins."""
+    irf = relay.irf
+    gauss = isinstance(irf, GaussianIRF)
+    if st.response == "auto" and not gauss and st.direct != "none":
+        dr = direct_return(relay, gate)
+        if dr is not None:
+            r = dr.response
+            if st.sigma0 is not None or st.tail0 is not None:
+                r = r.with_params(st.sigma0 or r.sigma, st.tail0 if r.kind == "emg" else None)
+            return r, dr.q
+    kind = st.response if st.response != "auto" else ("gaussian" if gauss else "emg")
+    if st.sigma0 is not None:
+        sig = float(st.sigma0)
+    elif irf is not None and getattr(irf, "sigma", 0) > 0:
+        sig = float(irf.sigma) / (1.0 if kind == "gaussian" else math.sqrt(2.0))
+    else:
+        sig = 1.5 * relay.grid.bin_width
+    tail = (float(st.tail0) if st.tail0 is not None else 2.0 * sig) if kind == "emg" else 0.0
+    return Response(kind, sig, tail), None
+
+
+def window(relay: Relay, grid: DepthGrid, z0, resp_hi: Response, cell: float, pad: float, gate,
+            slow_pad: float = 0.0):
+    """The relay cut to the bins the level's paths can reach (chunked over traces)."""
+    X, _, _ = grid.geometry(z0)
+    lo_d, hi_d = np.inf, -np.inf
+    for t0 in range(0, relay.n_traces, 256):
+        sl = slice(t0, t0 + 256)
+        d = (np.linalg.norm(relay.L[sl, None] - X[None], axis=-1)
+             + np.linalg.norm(relay.D[sl, None] - X[None], axis=-1) + relay.leg[sl, None])
+        lo_d, hi_d = min(lo_d, float(d.min())), max(hi_d, float(d.max()))
+    a, b = resp_hi.support(math.sqrt(resp_hi.sigma ** 2 + cell ** 2))
+    lo = max(lo_d + a - pad, gate if gate is not None else -np.inf)
+    return relay.window(lo, hi_d + b + pad + slow_pad)
