@@ -815,13 +815,14 @@ def test_a_coarse_level_cut_by_its_iteration_limit_is_a_note_not_a_reason(tilted
 
 def test_a_raised_weight_the_data_reject_is_undone(tilted_plane, monkeypatch):
     """The last level's discrepancy weight comes from a linearisation, which does not hold where
-    the regularised step moves depths beyond the response's width: a raised weight whose own
-    solve ends above the chi^2 its choice allowed is rejected and the solve before it kept. On the
-    tilted plane (prior over depths and albedos, one level) the first choice is replaced by 10^6
-    times itself: the flattened albedos' solve ends far above the target, the result keeps the
-    first solve's weight, state and chi^2 (bit for bit against the same fit stopped there), and
-    says so in ``levels[-1]["lambda_rejected"]`` and a note. (The real choice, 63.7, is rejected
-    too on this 6 x 6 grid: its solve ends at chi^2 10 261 against the 9 063 allowed.)"""
+    the regularised step moves depths beyond the response's width: a raised weight is tried on the
+    model at its own linearised step first, and rejected unsolved where that lands above the
+    chi^2 its choice allowed; else solved, and rejected where its solve ends above it. Either way
+    the level keeps the solve before it. On the tilted plane (6 x 6 nodes, one level, a prior over
+    depths and albedos) the real choice, 63.7, lands at chi^2 11 908 against the 9 063 allowed
+    (solved, 10 261): rejected unsolved. With that check passed by a patch and the choice replaced
+    by 10^6 times itself, the solve runs and is rejected. Both results equal the first solve's
+    (weight 0) bit for bit, and say so in ``levels[-1]["lambda_rejected"]`` and a note."""
     import stircasadi.nlos.surface.fit as F
     from stircasadi.nlos import VolumeSettings, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
@@ -833,7 +834,21 @@ def test_a_raised_weight_the_data_reject_is_undone(tilted_plane, monkeypatch):
     st = SurfaceSettings(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=30, prior=0.0,
                          albedo_prior=1.0, prune=False, edge_offsets=False, quadrature_check=False,
                          split_steps=False)
-    plain = fit_surface(relay, init, replace(st, prior=0.0), gate=0.2)     # the first solve alone
+    plain = fit_surface(relay, init, st, gate=0.2)     # the first solve alone
+
+    def same_as_plain(res):
+        np.testing.assert_array_equal(res.depth, plain.depth)
+        np.testing.assert_array_equal(res.albedo, plain.albedo)
+        assert res.chi2_dof == plain.chi2_dof and res.prior_weight == 0.0
+        assert any("was rejected" in n_ for n_ in res.extras["notes"])
+
+    real = fit_surface(relay, init, replace(st, prior="auto"), gate=0.2)
+    lv, rej = real.levels[-1], real.levels[-1]["lambda_rejected"]
+    assert [s_["lam"] for s_ in lv["solves"]] == [0.0] and not rej["solved"]
+    assert rej["lam"] == lv["lambda_choice"][0]["lam"] > 0 and rej["chi2"] > rej["target"]
+    assert rej["chi2"] == lv["lambda_choice"][0]["chi2_step"]
+    same_as_plain(real)
+
     choose, calls = F._choose_lambda, []
 
     def huge(*a, **k):
@@ -842,15 +857,12 @@ def test_a_raised_weight_the_data_reject_is_undone(tilted_plane, monkeypatch):
         return (1e6 * max(lam, 1.0) if len(calls) == 1 else lam), curve
 
     monkeypatch.setattr(F, "_choose_lambda", huge)
+    monkeypatch.setattr(F, "step_chi2", lambda *a: -np.inf)
     res = fit_surface(relay, init, replace(st, prior="auto"), gate=0.2)
-    lv = res.levels[-1]
-    rej = lv["lambda_rejected"]
-    assert [s_["lam"] for s_ in lv["solves"]] == [0.0, rej["lam"]] and rej["lam"] >= 1e6
-    assert rej["chi2"] > rej["target"] and rej["kept_lam"] == 0.0 == res.prior_weight
-    np.testing.assert_array_equal(res.depth, plain.depth)
-    np.testing.assert_array_equal(res.albedo, plain.albedo)
-    assert res.chi2_dof == plain.chi2_dof
-    assert any("was rejected" in n_ for n_ in res.extras["notes"])
+    lv, rej = res.levels[-1], res.levels[-1]["lambda_rejected"]
+    assert [s_["lam"] for s_ in lv["solves"]] == [0.0, rej["lam"]] and rej["lam"] >= 1e6 and rej["solved"]
+    assert rej["chi2"] > rej["target"] and rej["kept_lam"] == 0.0
+    same_as_plain(res)
 
 
 def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane):

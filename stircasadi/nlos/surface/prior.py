@@ -10,7 +10,7 @@ import math
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-__all__ = ["GCV_PROBES", "prior_operator"]
+__all__ = ["GCV_PROBES", "prior_operator", "step_chi2", "rejected"]
 
 
 #: Rademacher probes of the GCV trace estimate (seeded: the same probes for every candidate)
@@ -53,7 +53,7 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf, out_inf
     hz = float(np.trace(H[:N, :N])) / max(np.trace(R[:N, :N]), 1e-300)
     cands = np.concatenate([[0.0], hz * np.logspace(-8, 2, 41)])
     ridge = 1e-10 * float(np.trace(H)) / npar + 1e-300
-    out, valid = [], [chi2]
+    out, valid, steps = [], [chi2], {}
     gcv = rule == "gcv"
     if gcv:
         probes = np.random.default_rng(0).choice([-1.0, 1.0], size=(npar, GCV_PROBES))
@@ -76,6 +76,7 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf, out_inf
                 continue
         c = chi2 + 2 * g @ dlt + dlt @ H @ dlt
         out.append((lam, c))
+        steps[lam] = dlt
         trusted = float(np.max(np.abs(dlt[:N]))) <= slack
         if trusted:
             valid.append(c)
@@ -104,7 +105,27 @@ def _choose_lambda(H, g, chi2, dof, R, N, lam_now, z=None, slack=np.inf, out_inf
         out_info.update({"c_ref": float(min(valid)), "target": float(target),
                          "slack_bound": bool(min(valid) > min(lowest, chi2) * (1 + 1e-12)),
                          "lam_unbounded": float(max(ok_all)) if ok_all else 0.0})
-    return (max(ok) if ok else 0.0), out
+    lam = max(ok) if ok else 0.0
+    if out_info is not None:
+        out_info["step"] = steps.get(lam)      # the chosen weight's linearised step (or None)
+    return lam, out
+
+
+def step_chi2(model, state, bounds, step, y, wgt) -> float:
+    """The data's whitened chi^2 at ``state`` moved by a weight's linearised step (projected
+    onto ``bounds``): what the linearisation predicted, on the nonlinear model."""
+    th = bounds.project(model.pack(state) + step)
+    return float(model.objective(model.unpack(th, state), y, wgt)[0])
+
+
+def rejected(li: int, n: int, lam: float, chi2: float, target: float, kept: float, solved: bool):
+    """The record and the note of a raised weight the data reject (``fit.py``, step 4)."""
+    how = "its solve ended" if solved else "its linearised step lands (on the model, not solved)"
+    return ({"lam": float(lam), "chi2": float(chi2), "target": float(target), "kept_lam": float(kept),
+             "solved": bool(solved)},
+            f"level {li} ({n}x{n}): the discrepancy weight {lam:.4g} was rejected: {how} at chi2 {chi2:.6g}, "
+            f"above the {target:.6g} it was chosen for (the linearisation did not hold); the weight stays "
+            f"{kept:.4g}")
 
 
 def prior_operator(grid, st) -> np.ndarray:
