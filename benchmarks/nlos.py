@@ -16,8 +16,9 @@ decay, Lambertian), coarse to fine from 8 x 8 nodes, with its Fisher std maps; `
 sets the smoothness prior's weight by the discrepancy principle (without a prior a 32 x 32 grid
 over 16 x 16 traces is ill-posed). The fit runs on ``SurfaceSettings.threads`` threads (default:
 the process's CPUs, at most 4, or 1 under OMP_NUM_THREADS=1; ``--threads``), ``--max-iter`` LM
-iterations per level (default 12); each row records both. ``--albedo-prior A`` adds the albedo's
-gradient penalty at relative weight A under the chosen prior (``SurfaceSettings.albedo_prior``);
+iterations per level (default 12); each row records both. ``--albedo-prior A`` sets the albedo's
+gradient penalty's relative weight under the chosen prior (``SurfaceSettings.albedo_prior``; default:
+the fit's own, 1 with a prior; 0: free albedos);
 ``--no-quadrature-check`` keeps the size rule's sub-samples per cell (step 4d of the fit off):
 the row records the sub-samples the fit ended with and each check of step 4d. ``--turn 90``
 turns the wall's frame about its normal before the surface fit (results in nlos_turn90.json):
@@ -118,7 +119,7 @@ def turned(cap, deg: int):
 
 
 def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 12,
-                albedo_prior: float = 0.0, quadrature_check: bool = True, turn: int = 0) -> dict:
+                albedo_prior: float | None = None, quadrature_check: bool = True, turn: int = 0) -> dict:
     """The surface fit on the resolution chart, n x n nodes coarse to fine from 8 x 8: wall time,
     the process's maximum resident memory, the precision-weighted plane through the mask
     (``turn``: the wall's frame turned by that many degrees first)."""
@@ -140,7 +141,7 @@ def surface_row(n: int, prior: str, threads: int | None = None, max_iter: int = 
             "depth_m": z0, "tilt_deg": tilt, "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()),
             "depth_std_median_m": float(np.median(s.depth_std[s.mask])) if s.mask.any() else None,
             "prior": prior, "prior_weight": s.prior_weight, "turn_deg": turn,
-            "prior_rejected": s.levels[-1].get("lambda_rejected"), "albedo_prior": albedo_prior, "success": s.success,
+            "prior_rejected": s.levels[-1].get("lambda_rejected"), "albedo_prior": s.extras["albedo_prior"], "success": s.success,
             "threads": SurfaceSettings(threads=threads).n_threads(), "max_iter": max_iter,
             "quadrature_check": quadrature_check, "subsamples": s.levels[-1]["subsamples"],
             "quadrature": s.levels[-1].get("quadrature"), "reasons": list(s.reasons),
@@ -165,8 +166,9 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=None, help="the surface fit's threads (default: "
                     "SurfaceSettings.threads: the process's CPUs, at most 4; 1 under OMP_NUM_THREADS=1)")
     ap.add_argument("--max-iter", type=int, default=12, help="LM iterations per surface level")
-    ap.add_argument("--albedo-prior", type=float, default=0.0, help="the surface fit's albedo_prior "
-                    "(the albedo's gradient penalty relative to the depth's; needs --prior)")
+    ap.add_argument("--albedo-prior", type=float, default=None, help="the surface fit's albedo_prior "
+                    "(the albedo's gradient penalty relative to the depth's; needs --prior; default: "
+                    "SurfaceSettings' own, 1 with a prior)")
     ap.add_argument("--no-quadrature-check", action="store_true", help="the surface fit keeps the "
                     "sub-samples of its size rule (SurfaceSettings.quadrature_check off): what the check costs")
     ap.add_argument("--turn", type=int, default=0, help="the surface fit's wall frame turned by this many "
@@ -221,8 +223,8 @@ def main(argv=None):
             # many NumPy allocations several-fold) and the process's maximum resident memory
             # (CasADi's buffers included)
             out = subprocess.run([sys.executable, __file__, "--surface-one", str(n), "--prior", a.prior,
-                                  "--max-iter", str(a.max_iter), "--albedo-prior", str(a.albedo_prior),
-                                  "--turn", str(a.turn)]
+                                  "--max-iter", str(a.max_iter), "--turn", str(a.turn)]
+                                 + ([] if a.albedo_prior is None else ["--albedo-prior", str(a.albedo_prior)])
                                  + (["--no-quadrature-check"] if a.no_quadrature_check else [])
                                  + ([] if a.threads is None else ["--threads", str(a.threads)]),
                                  capture_output=True, text=True)

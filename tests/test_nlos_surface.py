@@ -866,7 +866,8 @@ def test_a_raised_weight_the_data_reject_is_undone(tilted_plane, monkeypatch):
 
 
 def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane):
-    """12 x 12 nodes over the tilted plane's 8 x 8 traces (prior auto): each node's own albedo is
+    """12 x 12 nodes over the tilted plane's 8 x 8 traces (prior auto, the albedos free:
+    ``albedo_prior=0``; with the default albedo prior every node's own is significant): each node's own albedo is
     significant at 3 std on only a minority of the support (neighbouring albedos trade against
     each other; measured 21 of 64), while the 3 x 3 neighbourhood means (std from the albedos'
     full covariance) put at least 90 % of the support's nodes in the mask and no node beyond one
@@ -879,7 +880,8 @@ def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=12, levels=2, known_gain=True, sigma0=0.01, max_iter=30,
-                                                   prior="auto", extent=(-0.15, 0.15, -0.15, 0.15)), gate=0.2)
+                                                   prior="auto", albedo_prior=0.0,
+                                                   extent=(-0.15, 0.15, -0.15, 0.15)), gate=0.2)
     g = res.grid
     yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
     support = (np.abs(xx) <= 0.12) & (np.abs(yy) <= 0.12)
@@ -891,8 +893,8 @@ def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane
 
 
 def test_an_albedo_prior_determines_the_albedos_of_a_grid_finer_than_the_traces(tilted_plane):
-    """``albedo_prior=1`` (the albedo's gradient penalty under the discrepancy weight) on the
-    tilted plane, 12 x 12 nodes over 8 x 8 traces: every support node's own albedo becomes
+    """``albedo_prior=1`` (the albedo's gradient penalty under the discrepancy weight; the default
+    under a prior) on the tilted plane, 12 x 12 nodes over 8 x 8 traces: every support node's own albedo becomes
     significant (measured 64 of 64, without: 21) and the albedo error over the support falls
     (0.105 against 0.195), while the depth stays within a millimetre (0.46 mm against 0.18 mm:
     one weight for both penalties, and the albedo's takes most of the discrepancy budget, so the
@@ -923,6 +925,9 @@ def test_an_albedo_prior_determines_the_albedos_of_a_grid_finer_than_the_traces(
         SurfaceSettings(albedo_prior=1.0).validate()
     with pytest.raises(ReconstructionError, match="albedo_prior must be a finite weight >= 0"):
         SurfaceSettings(prior="auto", albedo_prior=-1.0).validate()
+    # the default: the penalty at weight 1 wherever there is a prior, none without one
+    assert [SurfaceSettings(prior=p).validate().albedo_weight() for p in ("none", "auto", "gcv", 5.0)] == [0, 1, 1, 1]
+    assert SurfaceSettings(prior="auto", albedo_prior=0.0).albedo_weight() == 0.0
 
 
 def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilted_plane):
@@ -988,8 +993,8 @@ def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation
     """prior="auto", one level, the discrepancy choice forced to 10x its weight: the level is
     solved again, and that re-solve's first step (which reuses the weight choice's
     linearisation) starts exactly where the first solve ended: its F is the first solve's chi^2 / 2
-    plus the new weight's penalty of the first solve's depths (those of the same fit without a
-    prior, the same six iterations). The weight's check on the model at its own linearised step
+    plus the new weight's penalty of the first solve's depths and albedos (those of the same fit
+    without a prior, the same six iterations). The weight's check on the model at its own linearised step
     (which rejects it unsolved on this twin) is passed by a patch."""
     from stircasadi.nlos import VolumeSettings, from_capture, lct
     from stircasadi.nlos.surface import SurfaceSettings, fit_surface
@@ -1015,9 +1020,9 @@ def test_a_resolve_with_a_new_weight_starts_from_the_weight_choice_linearisation
     s1, s2 = res.levels[0]["solves"]
     assert s1["lam"] == 0.0 and calls[0] > 0 and s2["lam"] == pytest.approx(10 * calls[0], rel=1e-12)
     assert s1["f"] == pytest.approx(plain.levels[0]["solves"][0]["f"], rel=1e-12)
-    g = plain.grid
-    lap = g.laplacian()
-    R = (lap.T @ lap).toarray() / (g.hx * g.hy)
-    z1 = plain.depth.ravel()
-    expect = s1["history"][-1]["f_new"] + 0.5 * s2["lam"] * float(z1 @ R @ z1)
+    # the penalty of the default prior: the depths' Laplacian and the albedos' gradient (weight 1)
+    R = fitmod.prior_operator(plain.grid, SurfaceSettings(prior="auto"))
+    th1 = np.concatenate([plain.depth.ravel(), plain.albedo.ravel()])
+    assert R.shape == (th1.size, th1.size) and res.extras["albedo_prior"] == 1.0
+    expect = s1["history"][-1]["f_new"] + 0.5 * s2["lam"] * float(th1 @ R @ th1)
     assert s2["history"][0]["f"] == pytest.approx(expect, rel=1e-9)

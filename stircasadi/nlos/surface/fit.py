@@ -21,8 +21,8 @@ Steps
    as the largest for which the whitened chi^2 of the linearised regularised solution stays
    within max(chi2_min, dof) (1 + 2 sqrt(2 / dof)) (discrepancy principle; ``_choose_lambda``);
    with ``prior="gcv"`` the same candidates are scored by generalised cross-validation instead
-   (no noise level needed: ``_choose_lambda(rule="gcv")``); with ``albedo_prior`` > 0 the
-   penalty also holds the albedo's gradient, integral of |grad rho|^2, at that relative weight
+   (no noise level needed: ``_choose_lambda(rule="gcv")``); the penalty also holds the albedo's
+   gradient, integral of |grad rho|^2, at relative weight ``albedo_prior`` (default 1; 0: none)
    (one weight for both: on the tilted-plane twin with 12 x 12 nodes over 8 x 8 traces the
    albedo error halves and the depth's weight drops 1 117 -> 35, its error 0.18 -> 0.46 mm);
    a coarse level's weight starts the next level (the penalty approximates the integral of
@@ -585,7 +585,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 # step 4c: the cut cells, their centroid offsets and any shrinks (``cuts.cell_offsets``)
                 "cell_offsets": cell_offsets(model, state),
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
-                "albedo_prior": float(st.albedo_prior),
+                "albedo_prior": st.albedo_weight(),
                 # what the coarse levels could not do (not reasons: the last level decides)
                 "notes": notes,
                 # the last discrepancy choice (prior="auto"): its reference chi^2, target, whether

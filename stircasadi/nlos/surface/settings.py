@@ -55,8 +55,9 @@ class SurfaceSettings:
     prior: str | float = "none"
     #: relative weight of the albedo's smoothness penalty (the integral of |grad rho|^2 over the
     #: extent) beside the depth's (the integral of (del^2 z)^2), both under the prior's weight;
-    #: 0: the albedos are free (on grids finer than the traces they are then not determined)
-    albedo_prior: float = 0.0
+    #: 0: the albedos are free (on grids finer than the traces they are then not determined);
+    #: None (default): 1 where there is a prior (``prior`` not "none"), else 0 (``albedo_weight``)
+    albedo_prior: float | None = None
     #: the cells the surface's edge may cut (``mask.cut_cells`` on the last level's solution)
     #: get a free in-plane centroid (the covered part's first moment, within the cell) and the
     #: last level is solved again with them; False: every cell emits from its node
@@ -151,12 +152,13 @@ class SurfaceSettings:
                 raise ReconstructionError(f"prior must be 'auto', 'gcv', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
-        if not (float(self.albedo_prior) >= 0 and math.isfinite(float(self.albedo_prior))):
-            raise ReconstructionError(f"albedo_prior must be a finite weight >= 0; got {self.albedo_prior!r}.")
+        if self.albedo_prior is not None and not (float(self.albedo_prior) >= 0
+                                                  and math.isfinite(float(self.albedo_prior))):
+            raise ReconstructionError(f"albedo_prior must be a finite weight >= 0 or None; got {self.albedo_prior!r}.")
         if self.edge_shear and not (self.edge_offsets and self.edge_extent):
             raise ReconstructionError("edge_shear leans the cut cells' shrunk emitting parts: it needs "
                                       "edge_offsets=True and edge_extent=True (or set edge_shear=False).")
-        if float(self.albedo_prior) > 0 and self.prior == "none":
+        if self.albedo_weight() > 0 and self.prior == "none":
             raise ReconstructionError("albedo_prior weighs the albedo's penalty under the smoothness prior's "
                                       "weight: set prior='auto', 'gcv' or a weight as well (prior='none' has none).")
         for name in ("sigma0", "tail0", "z_slack", "noise_sigma"):
@@ -177,6 +179,15 @@ class SurfaceSettings:
         if not (0 <= self.margin <= 2):
             raise ReconstructionError(f"margin must be within [0, 2]; got {self.margin!r}.")
         return self
+
+    def albedo_weight(self) -> float:
+        """``albedo_prior``, or the default it stands for: 1 under a prior, 0 without one (a
+        depth prior alone leaves the albedos of a grid finer than the traces undetermined: on the
+        32 x 32 resolution chart 10 mask nodes, and a 90-degree turn of the wall's frame tilted
+        the plane by 54 deg; with it 301 and 272 nodes, planes 0.4059 / 0.4062 m, 1.9 deg)."""
+        if self.albedo_prior is not None:
+            return float(self.albedo_prior)
+        return 0.0 if self.prior == "none" else 1.0
 
     def n_threads(self) -> int:
         """``threads``, or the default it stands for (see the field)."""
