@@ -50,6 +50,8 @@ def test_nlos_options_reach_the_surface_fit(scan, tmp_path, capsys):
     (["--method", "surface", "--nlos", "n_nodes"], ["--nlos takes KEY=VALUE", "'n_nodes'"]),
     (["--method", "surface", "--nlos", "bogus=1"], ["Unknown option(s) ['bogus']", "n_nodes"]),
     (["--method", "surface", "--nlos", "prior=often"], ["prior must be 'auto', 'gcv', 'none'"]),
+    (["--method", "surface", "--nlos", "prior=auto", "--nlos", "albedo_prior=much"],
+     ["albedo_prior must be a finite weight >= 0, or None (null)", "'much'"]),
     (["--nlos", "n_nodes=6"], ["--nlos is for --method lct|fk|bp|surface"]),
 ])
 def test_bad_nlos_options_are_refused(scan, tmp_path, capsys, extra, words):

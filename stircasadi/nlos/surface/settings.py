@@ -152,9 +152,14 @@ class SurfaceSettings:
                 raise ReconstructionError(f"prior must be 'auto', 'gcv', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
-        if self.albedo_prior is not None and not (float(self.albedo_prior) >= 0
-                                                  and math.isfinite(float(self.albedo_prior))):
-            raise ReconstructionError(f"albedo_prior must be a finite weight >= 0 or None; got {self.albedo_prior!r}.")
+        if self.albedo_prior is not None:
+            try:
+                a = float(self.albedo_prior)
+            except (TypeError, ValueError):
+                a = math.nan
+            if not (a >= 0 and math.isfinite(a)):
+                raise ReconstructionError(f"albedo_prior must be a finite weight >= 0, or None (null) for the "
+                                          f"default (1 under a prior, 0 without); got {self.albedo_prior!r}.")
         if self.edge_shear and not (self.edge_offsets and self.edge_extent):
             raise ReconstructionError("edge_shear leans the cut cells' shrunk emitting parts: it needs "
                                       "edge_offsets=True and edge_extent=True (or set edge_shear=False).")
