@@ -51,7 +51,13 @@ def test_nlos_options_reach_the_surface_fit(scan, tmp_path, capsys):
     (["--method", "surface", "--nlos", "bogus=1"], ["Unknown option(s) ['bogus']", "n_nodes"]),
     (["--method", "surface", "--nlos", "prior=often"], ["prior must be 'auto', 'gcv', 'none'"]),
     (["--method", "surface", "--nlos", "prior=auto", "--nlos", "albedo_prior=much"],
-     ["albedo_prior must be a finite weight >= 0, or None (null)", "'much'"]),
+     ["SurfaceSettings.albedo_prior must be a number or None (null)", "'much'"]),
+    (["--method", "surface", "--nlos", "prior=auto", "--nlos", "albedo_prior=-1"],
+     ["albedo_prior must be a finite weight >= 0, or None (null) for the default"]),
+    # a value of the wrong kind, named with what the field takes (was an internal error)
+    (["--method", "surface", "--nlos", "n_nodes=abc"], ["SurfaceSettings.n_nodes must be a whole number", "'abc'"]),
+    (["--method", "surface", "--nlos", "sigma0=wide"], ["SurfaceSettings.sigma0 must be a number or None (null)"]),
+    (["--method", "lct", "--nlos", "diffuse=maybe"], ["VolumeSettings.diffuse must be true or false", "'maybe'"]),
     (["--nlos", "n_nodes=6"], ["--nlos is for --method lct|fk|bp|surface"]),
 ])
 def test_bad_nlos_options_are_refused(scan, tmp_path, capsys, extra, words):
@@ -60,6 +66,30 @@ def test_bad_nlos_options_are_refused(scan, tmp_path, capsys, extra, words):
     for w in words:
         assert w in err, (w, err)
     assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_settings_refuse_values_of_the_wrong_kind_and_take_numpy_scalars():
+    """``check_field_types``: each field takes what its annotation names (an integral float for a
+    whole number, NumPy scalars and arrays too) and refuses the rest with the field's name."""
+    import numpy as np
+
+    from stircasadi.errors import ReconstructionError
+    from stircasadi.nlos import VolumeSettings
+    from stircasadi.nlos.surface import SurfaceSettings
+
+    ok = SurfaceSettings(n_nodes=np.int64(8), levels=2.0, extent=np.array([-1, 1, -1, 1.0]), edge_extent=1,
+                         prior=np.float64(3.0), threads=None).validate()
+    assert ok.n_nodes == 8
+    VolumeSettings(z_range=[0.1, 1.0], diffuse=np.bool_(False), snr=np.float32(0.5)).validate()
+    for kw, words in [({"n_nodes": 8.5}, "SurfaceSettings.n_nodes must be a whole number; got 8.5"),
+                      ({"margin": True}, "SurfaceSettings.margin must be a number; got True"),
+                      ({"split_steps": 2}, "SurfaceSettings.split_steps must be true or false; got 2"),
+                      ({"extent": "wide"}, "SurfaceSettings.extent must be a list or None (null)")]:
+        with pytest.raises(ReconstructionError) as e:
+            SurfaceSettings(**kw).validate()
+        assert words in str(e.value)
+    with pytest.raises(ReconstructionError, match="VolumeSettings.n_depth must be a whole number or None"):
+        VolumeSettings(n_depth="many").validate()
 
 
 def test_library_refuses_nlos_options_outside_the_relay_wall_methods():

@@ -923,9 +923,11 @@ def test_an_albedo_prior_determines_the_albedos_of_a_grid_finer_than_the_traces(
     assert out[1.0][2] < 1e-3
     with pytest.raises(ReconstructionError, match="set prior='auto', 'gcv' or a weight"):
         SurfaceSettings(albedo_prior=1.0).validate()
-    for bad in (-1.0, float("nan"), "none"):
+    for bad in (-1.0, float("nan")):
         with pytest.raises(ReconstructionError, match="albedo_prior must be a finite weight >= 0, or None"):
             SurfaceSettings(prior="auto", albedo_prior=bad).validate()
+    with pytest.raises(ReconstructionError, match=r"albedo_prior must be a number or None \(null\)"):
+        SurfaceSettings(prior="auto", albedo_prior="none").validate()
     # the default: the penalty at weight 1 wherever there is a prior, none without one
     assert [SurfaceSettings(prior=p).validate().albedo_weight() for p in ("none", "auto", "gcv", 5.0)] == [0, 1, 1, 1]
     assert SurfaceSettings(prior="auto", albedo_prior=0.0).albedo_weight() == 0.0

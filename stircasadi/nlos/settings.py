@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..errors import ReconstructionError
+from .fieldtypes import check_field_types
 
 __all__ = ["VolumeSettings"]
 
@@ -45,6 +46,7 @@ class VolumeSettings:
     workers: int = -1
 
     def validate(self) -> "VolumeSettings":
+        check_field_types(self, "VolumeSettings")
         if not (isinstance(self.bin_factor, int) and self.bin_factor >= 1):
             raise ReconstructionError(f"bin_factor must be an integer >= 1; got {self.bin_factor!r}.")
         if self.gate_m is not None and not (self.gate_m >= 0):

@@ -5,6 +5,7 @@ import math
 from dataclasses import dataclass
 
 from ...errors import ReconstructionError
+from ..fieldtypes import check_field_types
 
 __all__ = ["SurfaceSettings"]
 
@@ -126,6 +127,7 @@ class SurfaceSettings:
     explained_n: int = 32
 
     def validate(self) -> "SurfaceSettings":
+        check_field_types(self, "SurfaceSettings")
         if not (int(self.n_nodes) >= 3):
             raise ReconstructionError(f"n_nodes must be >= 3; got {self.n_nodes!r}.")
         if not (int(self.levels) >= 1):
@@ -153,10 +155,7 @@ class SurfaceSettings:
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
         if self.albedo_prior is not None:
-            try:
-                a = float(self.albedo_prior)
-            except (TypeError, ValueError):
-                a = math.nan
+            a = float(self.albedo_prior)            # a number: check_field_types
             if not (a >= 0 and math.isfinite(a)):
                 raise ReconstructionError(f"albedo_prior must be a finite weight >= 0, or None (null) for the "
                                           f"default (1 under a prior, 0 without); got {self.albedo_prior!r}.")
