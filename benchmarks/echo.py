@@ -39,33 +39,44 @@ BIN_S = 4e-12        # the release's bin (NOTES.md)
 C = 299_792_458.0
 
 
-def late_parts(rect: np.ndarray, block: int, lo: float, hi: float, shift_m: float = 0.0, swap: bool = False):
-    """(late part of the data, prediction) over all blocks, concatenated; ``swap``: each block's
-    prediction from the block half the scan away (the control: an echo of its own return?)."""
-    rect = rect.astype(np.float64)
-    rect[:, :, :600] = 0.0               # the wall's own return (the authors' gate)
-    dr = BIN_S * C / 2.0
-    r = np.arange(rect.shape[2]) * dr
-    k = np.ones(16) / 16.0
-    side = np.zeros(r.size, bool)
-    side |= (r > 2 * lo - 0.1) & (r < 2 * lo)
-    side |= (r > 2 * hi - 0.1) & (r < 2 * hi + 0.1)
-    late = (r > 2 * lo) & (r < 2 * hi - 0.1)
-    shift = int(round(shift_m / dr))
-    E, P = [], []
-    n = rect.shape[0] // block
-    for i in range(n):
-        for j in range(n):
-            s = np.convolve(rect[i * block:(i + 1) * block, j * block:(j + 1) * block].sum((0, 1)), k, "same")
-            base = np.median(s[(r > lo - 0.06) & (r < lo - 0.01)])
-            m = np.where((r > lo) & (r < hi), s - base, 0.0)
-            auto = np.roll(np.convolve(m, m)[:r.size], shift)
-            E.append(s[late] - np.polyval(np.polyfit(r[side], s[side], 3), r[late]))
+class Blocks:
+    """A scan cut into ``block`` x ``block`` blocks once: per block the late part of the data
+    (``E``) and the main return's self-convolution (``auto``), with the range axis and masks."""
+
+    def __init__(self, rect: np.ndarray, block: int, lo: float, hi: float):
+        rect = rect.astype(np.float64)
+        rect[:, :, :600] = 0.0               # the wall's own return (the authors' gate)
+        self.dr = BIN_S * C / 2.0
+        r = self.r = np.arange(rect.shape[2]) * self.dr
+        k = np.ones(16) / 16.0
+        side = self.side = np.zeros(r.size, bool)
+        side |= (r > 2 * lo - 0.1) & (r < 2 * lo)
+        side |= (r > 2 * hi - 0.1) & (r < 2 * hi + 0.1)
+        late = self.late = (r > 2 * lo) & (r < 2 * hi - 0.1)
+        self.n = rect.shape[0] // block
+        self.E, self.auto = [], []
+        for i in range(self.n):
+            for j in range(self.n):
+                s = np.convolve(rect[i * block:(i + 1) * block, j * block:(j + 1) * block].sum((0, 1)), k, "same")
+                base = np.median(s[(r > lo - 0.06) & (r < lo - 0.01)])
+                m = np.where((r > lo) & (r < hi), s - base, 0.0)
+                self.auto.append(np.convolve(m, m)[:r.size])
+                self.E.append(s[late] - np.polyval(np.polyfit(r[side], s[side], 3), r[late]))
+
+    def late_parts(self, shift_m: float = 0.0, swap: bool = False):
+        """(late part of the data, prediction) over all blocks, concatenated; ``shift_m``: the
+        prediction moved in range; ``swap``: each block's prediction from the block half the scan
+        away (the control: an echo of its own return?)."""
+        r, side, late, n = self.r, self.side, self.late, self.n
+        shift = int(round(shift_m / self.dr))
+        P = []
+        for a in self.auto:
+            auto = np.roll(a, shift)
             P.append(auto[late] - np.polyval(np.polyfit(r[side], auto[side], 3), r[late]))
-    if swap:       # block (i, j) against block ((i + n/2) mod n, (j + n/2) mod n)
-        idx = np.arange(n * n).reshape(n, n)
-        P = [P[q] for q in np.roll(idx, (n // 2, n // 2), axis=(0, 1)).ravel()]
-    return np.concatenate(E), np.concatenate(P)
+        if swap:       # block (i, j) against block ((i + n/2) mod n, (j + n/2) mod n)
+            idx = np.arange(n * n).reshape(n, n)
+            P = [P[q] for q in np.roll(idx, (n // 2, n // 2), axis=(0, 1)).ravel()]
+        return np.concatenate(self.E), np.concatenate(P)
 
 
 def fit(E, P):
@@ -90,10 +101,10 @@ def main(argv=None) -> int:
         if not path.exists():
             print(f"{name}: absent ({path}); skipped")
             continue
-        rect = loadmat(path)["rect_data"]
+        blocks = Blocks(loadmat(path)["rect_data"], a.block, lo, hi)
         for sh, swap in ((0.0, False), (-0.03, False), (-0.015, False), (0.015, False), (0.03, False),
                          (0.0, True), (-0.015, True)):
-            kappa, r2 = fit(*late_parts(rect, a.block, lo, hi, sh, swap))
+            kappa, r2 = fit(*blocks.late_parts(sh, swap))
             rows.append({"file": name, "block": a.block, "shift_m": sh, "other_block": swap, "kappa": kappa, "r2": r2})
             print(f"{name:32s} {sh:8.3f} {kappa:10.3e} {r2:6.3f}" + ("  (each block against another's return)" if swap else ""))
     out = ROOT / "benchmarks" / "results" / "echo.json"

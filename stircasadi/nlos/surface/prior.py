@@ -135,8 +135,9 @@ def prior_operator(grid, st) -> np.ndarray:
     h = math.sqrt(grid.hx * grid.hy)
     lap = grid.laplacian()
     R = (lap.T @ lap).toarray() / h ** 2
-    if st.albedo_weight() > 0:
+    a = st.albedo_weight()
+    if a > 0:
         Gx, Gy = grid.gradient_ops()
-        Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * st.albedo_weight()
+        Ra = ((Gx.T @ Gx + Gy.T @ Gy).toarray() * (h * h)) * a
         R = np.block([[R, np.zeros_like(R)], [np.zeros_like(R), Ra]])
     return R
