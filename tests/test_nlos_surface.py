@@ -947,9 +947,10 @@ def test_a_solve_stops_once_its_steps_are_below_the_std_and_lands_within_it(tilt
     relay = from_capture(cap)
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
-    # (LM's own stop: one solve per level, without the cut cells' second one)
+    # (LM's own stop: one solve per level, without the cut cells' second one; the std are the
+    # Fisher metric LM's stop is stated in, so the edge nodes' are not widened)
     kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=60, tol=1e-10, explained=False,
-              edge_offsets=False)
+              edge_offsets=False, edge_std_model=False)
     quick = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=1.0), gate=0.2)
     full = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=0.0), gate=0.2)
     q, f = quick.levels[0]["solves"][0], full.levels[0]["solves"][0]
@@ -981,7 +982,7 @@ def test_a_relative_tolerance_stop_waits_for_the_undamped_step(tilted_plane):
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
     kw = dict(n_nodes=6, levels=1, known_gain=True, sigma0=0.01, max_iter=60, tol=1e-3, explained=False,
-              edge_offsets=False)
+              edge_offsets=False, edge_std_model=False)     # (std in LM's Fisher metric)
     early = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=0.0), gate=0.2)
     held = fit_surface(relay, init, SurfaceSettings(**kw, tol_chi2=1.0), gate=0.2)
     e, h = early.levels[0]["solves"][0], held.levels[0]["solves"][0]

@@ -43,8 +43,12 @@ def _surface_patches(est):
         if not mask[k]:
             notes["mask"] = "outside the surface mask: the data do not see a surface here"
         if edge[k]:
-            notes["edge"] = ("at the surface's edge (a cell the edge may cut, or its neighbour): the std "
-                             "hold the noise only, not the error of modelling a partly covered cell as uniform")
+            notes["edge"] = "at the surface's edge (a cell the edge may cut, or its neighbour): " + (
+                "the std are widened for the error of the edge's model (floors in quadrature: 1 % of the cell "
+                "pitch in depth; in albedo the larger of 5 % of the bright albedo, 25 % under the albedo prior, "
+                "and the node's departure from its mask neighbours' mean; mask.edge_std)"
+                if s.edge_widened else
+                "the std hold the noise only, not the error of modelling a partly covered cell as uniform")
         out.append({"id": pid, "name": f"H{pid}", "visible": False,
                     "position": _l(P[k]), "position_std": _l(Ps[k]),
                     "normal": _l(nrm[k]), "normal_std": _l(nstd[k]),
@@ -123,6 +127,7 @@ def json_dict(est) -> dict:
                      "maps": {"depth": _l(s.depth), "depth_std": _l(s.depth_std), "albedo": _l(s.albedo),
                               "albedo_std": _l(s.albedo_std), "mask": s.mask.astype(int).tolist(),
                               "edge": s.edge.astype(int).tolist()},
+                     "edge_std_widened": bool(s.edge_widened),
                      "irf_fwhm": s.fwhm_irf, "irf_sigma": s.sigma_irf, "irf_sigma_std": _f(s.sigma_irf_std),
                      "response": s.response, "irf_tail": _f(s.tail), "irf_tail_std": _f(s.tail_std),
                      "brdf": s.brdf,

@@ -210,10 +210,11 @@ def random_surface_twin(seed: int, half: float = 0.15, n_patch: int = 30, n_wall
 def score_surface(res, truth, q: int = 12, maps: bool = False) -> dict:
     """A surface fit against a ``random_surface_twin``'s truth, on the nodes whose whole cell
     (q x q sub-points) lies on the support with no depth step inside (the "full" nodes): depth,
-    normal and albedo errors (MAE over the full nodes; ``depth_bias`` the mean signed depth error), the coverage of the claims (|err| / std < 2
-    over the depths and albedos of the full nodes the fit does not mark as ``edge``; the edge
-    nodes' coverage apart: their std exclude the partial-cell error by the fit's own note), and
-    the mask against the support; with ``maps`` also the (n, n)
+    normal and albedo errors (MAE over the full nodes; ``depth_bias`` the mean signed depth error), the coverage
+    (|err| / std < 2) of the depths and albedos of the full nodes the fit does not mark as ``edge``
+    (``coverage2``, ``beyond2``, ``beyond4``, ``n_numbers``) and of those it marks
+    (``edge_coverage2``, ``edge_beyond4``; the study's claims are both, ``surface_coverage.claims``),
+    and the mask against the support; with ``maps`` also the (n, n)
     maps ``full``, ``depth_z``, ``albedo_z`` (error / std) and ``depth_err``."""
     g = res.grid
     c, u, v, w = (np.asarray(a, float) for a in g.frame)

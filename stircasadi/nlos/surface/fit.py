@@ -123,7 +123,7 @@ from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vect
 from .explained import explained_returns
 from .model import SurfaceModel, SurfaceState
 from .response import Response
-from .mask import depth_step, edge_map, surface_mask
+from .mask import depth_step, edge_map, edge_note, edge_std, surface_mask
 from .result import SurfaceResult
 from .settings import SurfaceSettings
 from .solve import solve_level
@@ -542,12 +542,12 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                        f"in depth (slope {step['slope']:.2g}, beyond {step['limit']:g} after 3 std): the node between them "
                        "cannot take both depths, so the normals of one part tilt toward the other, an error "
                        "the std do not hold; fit each surface over its own extent (SurfaceSettings.extent)")
-    if edge.any():
-        how = (f"the cut cells' centroids{' and extents per side' if model.extent else ''} are fitted, not the rest "
-               "of the covered part's shape" if model.K else "a partly covered cell is modelled as uniform")
-        notes.append(f"{int((edge & mask.reshape(shape)).sum())} of the {int(mask.sum())} mask nodes lie at the "
-                     "surface's edge (SurfaceResult.edge: a cell the edge may cut, or its neighbour): their std hold "
-                     f"the noise only, not the error of the edge's model ({how})")
+    if edge.any():      # their std widened by the edge's model error (mask.edge_std), or said to hold noise only
+        ap = bool(lam > 0 and st.albedo_weight() > 0)            # albedos under their smoothness prior
+        if st.edge_std_model:
+            z_std, rho_std, n_std = edge_std(edge, mask, z_std, rho, rho_std, n_std, math.sqrt(grid.hx * grid.hy),
+                                             prior=ap)
+        notes.append(edge_note(int((edge & mask.reshape(shape)).sum()), int(mask.sum()), model, st.edge_std_model, ap))
     if held_edge.any():
         notes.append(f"{int(held_edge.sum())} pruned node(s) beside the mask (albedo held at zero: no evidence of "
                      "their own, step 4b) are marked in SurfaceResult.edge too: their albedo is a model choice, "
@@ -560,7 +560,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     return SurfaceResult(
         grid=grid, depth=z.reshape(shape), albedo=rho.reshape(shape), normals=nrm.reshape(shape + (3,)),
         depth_std=z_std.reshape(shape), albedo_std=rho_std.reshape(shape),
-        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), edge=edge, sigma_irf=float(state.sigma),
+        normal_std=n_std.reshape(shape + (3,)), mask=mask.reshape(shape), edge=edge,
+        edge_widened=bool(st.edge_std_model and edge.any()), sigma_irf=float(state.sigma),
         sigma_irf_std=gstd.get("sigma"), background=float(state.bg), gain=float(gain_scale),
         prior_weight=float(lam),
         prior_method={"auto": "discrepancy principle", "gcv": "generalised cross-validation",

@@ -6,7 +6,9 @@ import numpy as np
 
 from .grid import DepthGrid
 
-__all__ = ["BRIGHT", "bright_nodes", "neighbourhood_mean", "surface_mask", "edge_map", "cut_cells", "depth_step"]
+__all__ = ["BRIGHT", "bright_nodes", "neighbourhood_mean", "surface_mask", "edge_map", "cut_cells", "depth_step",
+           "EDGE_FACTOR", "EDGE_DEPTH_FLOOR", "EDGE_ALBEDO_FLOOR", "EDGE_ALBEDO_FLOOR_PRIOR",
+           "EDGE_ROUGHNESS", "edge_std", "edge_note"]
 
 
 #: a lit node's albedo is at least this fraction of the surface's bright albedo (``bright_nodes``)
@@ -98,7 +100,8 @@ def edge_map(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
     albedo, a letter's bar two cells wide trading albedo across its width). Without the cut
     cells' centroids (``cuts.py``) the error reached beyond this band on paired relays at noise
     below about 0.5 %; with them the band's own numbers lie within 2 std for 88 % on held-out
-    scenes (BENCHMARKS.md, "Surface fit on seeded random twins")."""
+    scenes (BENCHMARKS.md, "Surface fit on seeded random twins"), and the fit widens the band's
+    std for the rest (``edge_std``)."""
     from scipy.ndimage import binary_dilation
 
     if not mask.any():
@@ -111,6 +114,84 @@ def edge_map(mask: np.ndarray, rho: np.ndarray) -> np.ndarray:
     low = np.pad(mask & (rho < 0.5 * float(np.percentile(rho[mask], 90))), 1, constant_values=False)
     cut = binary_dilation(out, structure=k) | low
     return mask & binary_dilation(cut, structure=k)[1:-1, 1:-1]
+
+
+#: the edge nodes' std (``edge_std``): their Fisher std times EDGE_FACTOR and, in quadrature, the
+#: edge model's own error, which does not fall with the noise: EDGE_DEPTH_FLOOR x the cell pitch in
+#: depth; in albedo the larger of EDGE_ALBEDO_FLOOR x the mask's bright albedo (its 90th
+#: percentile; EDGE_ALBEDO_FLOOR_PRIOR under the albedo's smoothness prior, whose pull toward the
+#: dark outside is a bias of its own) and EDGE_ROUGHNESS x the node's departure from the mean
+#: albedo of the mask nodes in its 3 x 3 neighbourhood (neighbours trading albedo). Calibrated on
+#: the seeded study's scenes 1100-1123 (prior none and auto) and the failures of 1200-1223;
+#: judged on 1300-1323 (BENCHMARKS.md, "Edge nodes' error bars").
+EDGE_FACTOR = 1.0
+EDGE_DEPTH_FLOOR = 0.01
+EDGE_ALBEDO_FLOOR = 0.05
+EDGE_ALBEDO_FLOOR_PRIOR = 0.25
+EDGE_ROUGHNESS = 1.0
+
+
+def edge_std(edge, mask, z_std, rho, rho_std, n_std, pitch: float, factor: float = EDGE_FACTOR,
+             depth_floor: float = EDGE_DEPTH_FLOOR, albedo_floor: float | None = None,
+             roughness: float = EDGE_ROUGHNESS, prior: bool = False):
+    """The std of the edge nodes (``edge_map``) widened by the error of the edge's model: a cell
+    the surface's edge cuts is modelled as uniform (or, with ``cuts.py``, by its covered part's
+    centroid and extents), and it and its neighbours trade depth and albedo with the part the
+    model cannot hold. That error does not fall with the noise: with the Fisher std alone, edge
+    nodes of the seeded study lay up to 14 std off at low noise (seed 1211, two bars 3 cells wide,
+    0.3 % noise: each bar's outer column -0.15 to -0.24 in albedo, its inner column +0.14 to +0.22,
+    at std 0.013-0.06; seed 1107, a cap: +0.06 at std 0.01). So each edge node's std is
+    ``hypot(factor * std, floor)``: depth floor ``depth_floor`` x ``pitch`` (the cell's side, m);
+    albedo floor the larger of ``albedo_floor`` (None: EDGE_ALBEDO_FLOOR, or EDGE_ALBEDO_FLOOR_PRIOR
+    where ``prior``: the albedos were fitted under their smoothness prior) x the mask's bright
+    albedo (the 90th percentile of its albedos: a fraction of the surface's own reflectance,
+    absolute or relative) and
+    ``roughness`` x |albedo - the mean albedo of the mask nodes in its 3 x 3 neighbourhood| (a
+    trade shows as neighbours alternating about their mean); each normal's std grows by its depth
+    std's ratio (the normals follow from the depths). Nodes off the edge keep their std.
+
+    ``edge`` and ``mask`` are (ny, nx); the other arrays flat over the N nodes (``n_std`` (N,
+    3)). Returns new (z_std, rho_std, n_std)."""
+    from scipy.ndimage import convolve
+
+    e2 = np.asarray(edge, bool)
+    e = e2.ravel()
+    z_std, rho_std = np.asarray(z_std, float).copy(), np.asarray(rho_std, float).copy()
+    n_std = np.asarray(n_std, float).copy()
+    if not e.any():
+        return z_std, rho_std, n_std
+    m2 = np.asarray(mask, bool).reshape(e2.shape)
+    r2 = np.asarray(rho, float).reshape(e2.shape)
+    bright = float(np.percentile(r2[m2], 90)) if m2.any() else float(np.max(np.abs(r2[e2])))
+    if albedo_floor is None:
+        albedo_floor = EDGE_ALBEDO_FLOOR_PRIOR if prior else EDGE_ALBEDO_FLOOR
+    k3 = np.ones((3, 3))
+    w = m2.astype(float)
+    mean = convolve(r2 * w, k3, mode="constant") / np.maximum(convolve(w, k3, mode="constant"), 1.0)
+    floor_a = np.maximum(albedo_floor * max(bright, 0.0), roughness * np.abs(r2 - mean)).ravel()
+    z_new = np.hypot(factor * z_std[e], depth_floor * float(pitch))
+    n_std[e] *= (z_new / np.maximum(z_std[e], 1e-300))[:, None]
+    z_std[e] = z_new
+    rho_std[e] = np.hypot(factor * rho_std[e], floor_a[e])
+    return z_std, rho_std, n_std
+
+
+def edge_note(n_edge: int, n_mask: int, model, widened: bool, prior: bool = False) -> str:
+    """The fit's note on its edge nodes: how many, what the edge's model leaves out (``model``:
+    the ``SurfaceModel`` with its cut cells' centroids ``K`` and ``extent``), and whether their
+    std were widened by ``edge_std`` (``widened``; ``prior``: as for albedos fitted under their
+    smoothness prior) or hold the noise only."""
+    albedo_floor = EDGE_ALBEDO_FLOOR_PRIOR if prior else EDGE_ALBEDO_FLOOR
+    how = (f"the cut cells' centroids{' and extents per side' if model.extent else ''} are fitted, not the rest "
+           "of the covered part's shape" if model.K else "a partly covered cell is modelled as uniform")
+    head = (f"{n_edge} of the {n_mask} mask nodes lie at the surface's edge (SurfaceResult.edge: a cell the edge "
+            "may cut, or its neighbour)")
+    if widened:
+        return (f"{head}: their std are widened for the error of the edge's model ({how}): "
+                f"hypot({EDGE_FACTOR:g} x Fisher std, floor), floors {EDGE_DEPTH_FLOOR:g} x the cell pitch in depth "
+                f"and in albedo the larger of {albedo_floor:g} x the mask's bright albedo and the node's departure "
+                "from its mask neighbours' mean (mask.edge_std)")
+    return f"{head}: their std hold the noise only, not the error of the edge's model ({how}; edge_std_model=False)"
 
 
 def shifted_pair(shape, dy: int, dx: int):

@@ -44,10 +44,12 @@ class SurfaceResult:
     tail_std: float | None = None
     brdf: str = "lambertian"
     fwhm_irf: float = 0.0
-    #: (ny, nx) mask nodes at the surface's edge (a cell the edge may cut, or its neighbour):
-    #: their std hold the noise only, not the error of a partly covered cell (``mask.edge_map``;
-    #: None: no node marked, set in __post_init__)
+    #: (ny, nx) mask nodes at the surface's edge (a cell the edge may cut, or its neighbour;
+    #: ``mask.edge_map``; None: no node marked, set in __post_init__)
     edge: np.ndarray | None = None
+    #: the edge nodes' std are widened for the error of the edge's model (``mask.edge_std``,
+    #: ``SurfaceSettings.edge_std_model``); False: they hold the noise only
+    edge_widened: bool = False
     levels: list = field(default_factory=list)
     wall_time_s: float = 0.0
     reasons: list = field(default_factory=list)

@@ -71,6 +71,13 @@ class SurfaceSettings:
     #: shrinks, ``SurfaceModel(cell_shear=True)``), tested with them; False: rectangles. Lowers
     #: chi2/dof on most low-noise twins but is not the default (``cuts.py``: seed 819)
     edge_shear: bool = False
+    #: the edge nodes' std (``SurfaceResult.edge``: cells the surface's edge may cut and their
+    #: neighbours) widened for the edge model's own error (``mask.edge_std``: floors in quadrature,
+    #: 1 % of the cell pitch in depth, in albedo the larger of 5 % of the bright albedo (25 %
+    #: under the albedo's smoothness prior) and the node's departure from its mask neighbours'
+    #: mean; calibrated on the seeded study);
+    #: False: the Fisher std of the noise alone, as for the other nodes
+    edge_std_model: bool = True
     #: nodes whose albedo explains less of the data than noise would (``prune.py``: each node's
     #: chi^2 rise without it below the chi^2(2) quantile at p = 0.01) get albedo zero and the
     #: last level is solved again, kept by a likelihood-ratio test; False: every node stays free
