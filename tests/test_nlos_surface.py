@@ -880,7 +880,7 @@ def test_the_mask_on_a_grid_finer_than_the_traces_holds_the_support(tilted_plane
     relay.gain[:] = (WALL_RHO / math.pi) ** 2
     init = lct(relay, VolumeSettings(gate_m=0.2)).maps()
     res = fit_surface(relay, init, SurfaceSettings(n_nodes=12, levels=2, known_gain=True, sigma0=0.01, max_iter=30,
-                                                   prior="auto", albedo_prior=0.0,
+                                                   prior="auto", albedo_prior=0.0, edge_std_model=False,
                                                    extent=(-0.15, 0.15, -0.15, 0.15)), gate=0.2)
     g = res.grid
     yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
@@ -911,6 +911,7 @@ def test_an_albedo_prior_determines_the_albedos_of_a_grid_finer_than_the_traces(
     for a in (0.0, 1.0):
         res = fit_surface(relay, init, SurfaceSettings(n_nodes=12, levels=2, known_gain=True, sigma0=0.01,
                                                        max_iter=30, prior="auto", albedo_prior=a,
+                                                       edge_std_model=False,    # (the posterior's own std)
                                                        extent=(-0.15, 0.15, -0.15, 0.15)), gate=0.2)
         g = res.grid
         yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
