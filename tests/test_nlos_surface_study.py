@@ -150,6 +150,12 @@ def test_edge_std_widens_the_edge_nodes_only_by_their_floors():
     z5, r5, n5 = edge_std(edge, mask, z_std, rho, rho_std, n_std, 0.025, factor=1.0, depth_floor=0.0,
                           albedo_floor=0.0, roughness=0.0)
     assert np.allclose(z5, z_std) and np.allclose(r5, rho_std) and np.allclose(n5, n_std)
+    # the setting that switches it is a yes/no, refused otherwise with what is allowed
+    from stircasadi.errors import ReconstructionError
+    from stircasadi.nlos.surface import SurfaceSettings
+    assert SurfaceSettings().validate().edge_std_model is True
+    with pytest.raises(ReconstructionError, match="edge_std_model must be true or false"):
+        SurfaceSettings(edge_std_model="maybe").validate()
 
 
 @pytest.mark.slow

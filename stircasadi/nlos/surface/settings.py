@@ -50,7 +50,8 @@ class SurfaceSettings:
     known_gain: bool = False
     #: smoothness prior on the depth map's Laplacian: "none" (default: the std maps are the
     #: data's own Fisher bounds), "auto" (weight by the discrepancy principle; the std are then
-    #: posterior std that do not cover the prior's bias), "gcv" (weight by generalised
+    #: posterior std that do not cover the prior's bias: the edge nodes' get a larger albedo floor,
+    #: ``mask.edge_std``, which held most of it on the seeded study, not all), "gcv" (weight by generalised
     #: cross-validation, which needs no noise level: robust to a model mismatch that scales
     #: chi^2), or a fixed non-negative weight
     prior: str | float = "none"
