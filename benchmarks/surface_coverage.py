@@ -22,14 +22,13 @@ support, or its std maps do not cover the errors of its claims, the depths and a
 full node, those it marks as ``edge`` included (more of them beyond 2 std than calibrated std
 give with probability 1 %, binomially, or more than 2 % of them beyond 4 std: tested on all of
 them and on the inner and the edge nodes apart; or fewer than half of the full nodes in its
-mask); OK otherwise. (Until the edge nodes' std were widened
-for the edge's model error, ``mask.edge_std``, the claims were the full nodes not marked as edge:
-at 12 x 12 nodes about 5 % of them, and only a scene with none of them was judged by its mask's
-placement. ``--rescore`` judges a study written then by today's rule, from its
-rows' inner and edge counts.) The pooled coverage of the OK scenes' claims is the study's measure
-of calibration; the inner and the edge nodes' coverage are printed apart. Prints one row per
-scene and a summary, and writes ``benchmarks/results/surface_coverage_<first>_<last>.json`` after
-every scene.
+mask); OK otherwise. (Until the edge nodes' std were widened for the edge's model error,
+``mask.edge_std``, the claims were the full nodes not marked as edge: at 12 x 12 nodes about 5 %
+of them, and only a scene with none of them was judged by its mask's placement. ``--rescore``
+judges a study written then by today's rule, from its rows' inner and edge counts.) The pooled
+coverage of the OK scenes' claims is the study's measure of calibration; the inner and the edge
+nodes' coverage are printed apart. Prints one row per scene and a summary, and writes
+``benchmarks/results/surface_coverage_<first>_<last>[_prior<PRIOR>].json`` after every scene.
 """
 from __future__ import annotations
 
