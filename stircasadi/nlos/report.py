@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from .surface.mask import EDGE_ALBEDO_FLOOR, EDGE_ALBEDO_FLOOR_PRIOR, EDGE_DEPTH_FLOOR
+
 __all__ = ["json_dict"]
 
 UNITS = {"length": "m", "time": "m of optical path", "area": "m^2", "angle": "rad"}
@@ -18,6 +20,11 @@ UNITS = {"length": "m", "time": "m of optical path", "area": "m^2", "angle": "ra
 
 def _l(a):
     return None if a is None else np.asarray(a, float).round(9).tolist()
+
+
+def _pc(fraction: float) -> str:
+    """A fraction as a percentage for the patches' notes, e.g. 0.05 -> "5 %"."""
+    return f"{100 * fraction:g} %"
 
 
 def _f(x):
@@ -44,9 +51,10 @@ def _surface_patches(est):
             notes["mask"] = "outside the surface mask: the data do not see a surface here"
         if edge[k]:
             notes["edge"] = "at the surface's edge (a cell the edge may cut, or its neighbour): " + (
-                "the std are widened for the error of the edge's model (floors in quadrature: 1 % of the cell "
-                "pitch in depth; in albedo the larger of 5 % of the bright albedo, 25 % under the albedo prior, "
-                "and the node's departure from its mask neighbours' mean; mask.edge_std)"
+                f"the std are widened for the error of the edge's model (floors in quadrature: {_pc(EDGE_DEPTH_FLOOR)} "
+                f"of the cell pitch in depth; in albedo the larger of {_pc(EDGE_ALBEDO_FLOOR)} of the bright albedo, "
+                f"{_pc(EDGE_ALBEDO_FLOOR_PRIOR)} under the albedo prior, and the node's departure from its mask "
+                "neighbours' mean; mask.edge_std)"
                 if s.edge_widened else
                 "the std hold the noise only, not the error of modelling a partly covered cell as uniform")
         out.append({"id": pid, "name": f"H{pid}", "visible": False,

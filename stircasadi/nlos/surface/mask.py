@@ -8,7 +8,7 @@ from .grid import DepthGrid
 
 __all__ = ["BRIGHT", "bright_nodes", "neighbourhood_mean", "surface_mask", "edge_map", "cut_cells", "depth_step",
            "EDGE_FACTOR", "EDGE_DEPTH_FLOOR", "EDGE_ALBEDO_FLOOR", "EDGE_ALBEDO_FLOOR_PRIOR",
-           "EDGE_ROUGHNESS", "edge_std", "edge_note"]
+           "EDGE_ROUGHNESS", "edge_albedo_floor", "edge_std", "edge_note"]
 
 
 #: a lit node's albedo is at least this fraction of the surface's bright albedo (``bright_nodes``)
@@ -131,6 +131,12 @@ EDGE_ALBEDO_FLOOR_PRIOR = 0.25
 EDGE_ROUGHNESS = 1.0
 
 
+def edge_albedo_floor(prior: bool) -> float:
+    """The edge albedo floor's fraction of the bright albedo: EDGE_ALBEDO_FLOOR_PRIOR where the
+    albedos were fitted under their smoothness prior (``prior``), else EDGE_ALBEDO_FLOOR."""
+    return EDGE_ALBEDO_FLOOR_PRIOR if prior else EDGE_ALBEDO_FLOOR
+
+
 def edge_std(edge, mask, z_std, rho, rho_std, n_std, pitch: float, factor: float = EDGE_FACTOR,
              depth_floor: float = EDGE_DEPTH_FLOOR, albedo_floor: float | None = None,
              roughness: float = EDGE_ROUGHNESS, prior: bool = False):
@@ -164,7 +170,7 @@ def edge_std(edge, mask, z_std, rho, rho_std, n_std, pitch: float, factor: float
     r2 = np.asarray(rho, float).reshape(e2.shape)
     bright = float(np.percentile(r2[m2], 90)) if m2.any() else float(np.max(np.abs(r2[e2])))
     if albedo_floor is None:
-        albedo_floor = EDGE_ALBEDO_FLOOR_PRIOR if prior else EDGE_ALBEDO_FLOOR
+        albedo_floor = edge_albedo_floor(prior)
     k3 = np.ones((3, 3))
     w = m2.astype(float)
     mean = convolve(r2 * w, k3, mode="constant") / np.maximum(convolve(w, k3, mode="constant"), 1.0)
@@ -181,7 +187,7 @@ def edge_note(n_edge: int, n_mask: int, model, widened: bool, prior: bool = Fals
     the ``SurfaceModel`` with its cut cells' centroids ``K`` and ``extent``), and whether their
     std were widened by ``edge_std`` (``widened``; ``prior``: as for albedos fitted under their
     smoothness prior) or hold the noise only."""
-    albedo_floor = EDGE_ALBEDO_FLOOR_PRIOR if prior else EDGE_ALBEDO_FLOOR
+    albedo_floor = edge_albedo_floor(prior)
     how = (f"the cut cells' centroids{' and extents per side' if model.extent else ''} are fitted, not the rest "
            "of the covered part's shape" if model.K else "a partly covered cell is modelled as uniform")
     head = (f"{n_edge} of the {n_mask} mask nodes lie at the surface's edge (SurfaceResult.edge: a cell the edge "
