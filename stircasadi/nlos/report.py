@@ -53,8 +53,8 @@ def _surface_patches(est):
             notes["edge"] = "at the surface's edge (a cell the edge may cut, or its neighbour): " + (
                 f"the std are widened for the error of the edge's model (floors in quadrature: {_pc(EDGE_DEPTH_FLOOR)} "
                 f"of the cell pitch in depth; in albedo the larger of {_pc(EDGE_ALBEDO_FLOOR)} of the bright albedo, "
-                f"{_pc(EDGE_ALBEDO_FLOOR_PRIOR)} under the albedo prior, and the node's departure from its mask "
-                "neighbours' mean; mask.edge_std)"
+                f"{_pc(EDGE_ALBEDO_FLOOR_PRIOR)} under the albedo prior with the posterior's std, and the node's "
+                "departure from its mask neighbours' mean; mask.edge_std)"
                 if s.edge_widened else
                 "the std hold the noise only, not the error of modelling a partly covered cell as uniform")
         out.append({"id": pid, "name": f"H{pid}", "visible": False,
@@ -141,6 +141,7 @@ def json_dict(est) -> dict:
                      "brdf": s.brdf,
                      "background": s.background, "gain": s.gain, "albedo_relative": s.albedo_relative,
                      "prior_weight": s.prior_weight, "prior_method": s.prior_method,
+                     "std_basis": s.extras.get("std_basis", "fisher"),
                      "chi2_dof": s.chi2_dof, "dof": s.dof, "levels": s.levels})
     else:
         surf.update({"grid": {"x": _l(est.maps.x), "y": _l(est.maps.y)},

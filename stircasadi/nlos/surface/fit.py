@@ -72,16 +72,16 @@ Steps
    depth or albedo by ``CONVERGED_STD`` (half) of its std or more, else a note (dark specks
    outside the mask that fit noise kept 7 of 14 held-out study scenes at the limit, their
    surfaces converged).
-5. Fisher covariance (H + lam R)^-1 from float64 products at the solution (R the prior's
-   operator), std maps of depth, albedo and normal components (normals linearised through the
-   depth gradients), inflated by sqrt(chi2/dof) when above 1; the mask keeps nodes whose albedo
-   is above a tenth of the surface's bright one (``mask.bright_nodes``) and ``mask_z`` std above
-   0, on its own or as the mean of the node's 3 x 3 neighbourhood (``mask.surface_mask``: on grids
-   finer than the data resolve each node's own std is large, their mean's is not). The edge map (``mask.edge_map``, ``SurfaceResult.edge``) marks
-   the mask nodes whose cell the surface's edge may cut and their eight neighbours: each cell
-   is modelled as uniformly covered, and where the edge cuts one its neighbours' albedos and
-   depths trade with it, an error the Fisher std do not hold (a note in ``extras["notes"]``;
-   the nodes' patches in estimate.json say so). Detection: the surface must lower
+5. Covariance (H + lam R)^-1 from float64 products at the solution (R the prior's operator), std
+   maps of depth, albedo and normals (``stdmaps.py``), inflated by sqrt(chi2/dof) when above 1;
+   under a prior the maps are the data's, H^-1, unless ``claims_under_prior`` is "posterior". The
+   mask keeps nodes whose albedo is above a tenth of the surface's bright one (``mask.bright_nodes``)
+   and ``mask_z`` std above 0, on its own or as its 3 x 3 neighbourhood's mean (``mask.surface_mask``;
+   under the albedo's prior with evidence of its own in the data). The edge map (``mask.edge_map``,
+   ``SurfaceResult.edge``) marks the mask nodes whose cell the surface's edge may cut and their
+   eight neighbours: each cell is modelled as uniformly covered, and where the edge cuts one its
+   neighbours' albedos and depths trade with it, an error the Fisher std do not hold (a note in
+   ``extras["notes"]``; the nodes' patches in estimate.json say so). Detection: the surface must lower
    the whitened chi^2 (divided by the inflation) below the no-surface model's (zero albedo) by
    more than the chi^2 quantile of 2 N degrees of freedom at p = ``DETECT_P`` (a likelihood
    ratio with every node's depth and albedo free); else the mask is empty, ``success`` false and
@@ -112,12 +112,13 @@ from ...errors import ReconstructionError
 from ...progress import get_logger
 from ..relay import Relay
 from ..volume import Maps
-from .grid import DepthGrid, normal_std
+from .grid import DepthGrid
 from .start import extent as _extent, initial as _initial, response0 as _response0, window as _window
 from .prior import GCV_PROBES, _choose_lambda, prior_operator, rejected, step_chi2  # noqa: F401  (read by the tests, patched by one)
 from .cuts import CUT_P, cell_offsets, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .quadrature import refine_quadrature
-from .prune import prune_nodes
+from .prune import node_evidence, prune_nodes
+from .stdmaps import data_covariance, std_maps
 from .steps import step_labels
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
 from .explained import explained_returns
@@ -472,20 +473,15 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     A += (1e-12 * float(np.trace(A)) / npar) * np.eye(npar)
     C = np.linalg.inv(A)
     infl = max(1.0, chi2 / dof)
-    Cz = C[:N, :N] * infl
-    z_std = np.sqrt(np.maximum(np.diag(Cz), 0))
-    rho_std = np.sqrt(np.maximum(np.diag(C[N:2 * N, N:2 * N]) * infl, 0))
-    gstd = {k: math.sqrt(max(C[2 * N + i, 2 * N + i] * infl, 0)) for i, k in enumerate(model.glob)}
     z, rho = state.z, state.rho
     X, nrm, _ = grid.geometry(z)
-    Gx, Gy = grid.gradient_ops()
-    gx, gy = Gx @ z, Gy @ z
-    GxC, GyC = np.asarray(Gx @ Cz), np.asarray(Gy @ Cz)
-    vxx = np.asarray((Gx.multiply(GxC)).sum(axis=1)).ravel()
-    vyy = np.asarray((Gy.multiply(GyC)).sum(axis=1)).ravel()
-    vxy = np.asarray((Gy.multiply(GxC)).sum(axis=1)).ravel()
-    n_std = normal_std(grid, gx, gy, vxx, vyy, vxy)
-    mask = surface_mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z)
+    z_std, rho_std, n_std, gstd = std_maps(grid, C, infl, z, model.glob)     # the posterior's (no prior: H's)
+    ap = bool(lam > 0 and st.albedo_weight() > 0)            # albedos under their smoothness prior
+    data_claims = bool(lam > 0 and st.claims_under_prior == "data")
+    # under the albedo's prior a mask node must also hold evidence of its own in the data (the
+    # smoothing spreads albedo a node beyond the edge, where the posterior calls it significant)
+    ev = node_evidence(rho, lin["g"][N:2 * N], np.diag(H)[N:2 * N]) / infl if ap and data_claims else None
+    mask = surface_mask(grid, rho, rho_std, C[N:2 * N, N:2 * N] * infl, st.mask_z, evidence=ev)
     # detection: the surface must lower chi^2 below what the same window holds without it (zero
     # albedo, the fitted background and response) by more than chance would with 2 N free node
     # unknowns (likelihood ratio at p = DETECT_P, chi^2 scaled by the inflation); else the data
@@ -542,12 +538,14 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                        f"in depth (slope {step['slope']:.2g}, beyond {step['limit']:g} after 3 std): the node between them "
                        "cannot take both depths, so the normals of one part tilt toward the other, an error "
                        "the std do not hold; fit each surface over its own extent (SurfaceSettings.extent)")
+    if data_claims:     # the maps rest on the data, not the prior (stdmaps.py); the checks above read the posterior's
+        z_std, rho_std, n_std, gstd = std_maps(grid, data_covariance(H), infl, z, model.glob)
     if edge.any():      # their std widened by the edge's model error (mask.edge_std), or said to hold noise only
-        ap = bool(lam > 0 and st.albedo_weight() > 0)            # albedos under their smoothness prior
+        pb = ap and not data_claims             # the posterior's albedo std: the prior's bias needs the larger floor
         if st.edge_std_model:
             z_std, rho_std, n_std = edge_std(edge, mask, z_std, rho, rho_std, n_std, math.sqrt(grid.hx * grid.hy),
-                                             prior=ap)
-        notes.append(edge_note(int((edge & mask.reshape(shape)).sum()), int(mask.sum()), model, st.edge_std_model, ap))
+                                             prior=pb)
+        notes.append(edge_note(int((edge & mask.reshape(shape)).sum()), int(mask.sum()), model, st.edge_std_model, pb))
     if held_edge.any():
         notes.append(f"{int(held_edge.sum())} pruned node(s) beside the mask (albedo held at zero: no evidence of "
                      "their own, step 4b) are marked in SurfaceResult.edge too: their albedo is a model choice, "
@@ -587,6 +585,8 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "cell_offsets": cell_offsets(model, state),
                 # the albedo's gradient penalty's weight relative to the depth's (0: none)
                 "albedo_prior": st.albedo_weight(),
+                # what the std maps rest on (stdmaps.py): "fisher" (no prior), "data" or "posterior"
+                "std_basis": "fisher" if lam <= 0 else ("data" if data_claims else "posterior"),
                 # what the coarse levels could not do (not reasons: the last level decides)
                 "notes": notes,
                 # the last discrepancy choice (prior="auto"): its reference chi^2, target, whether

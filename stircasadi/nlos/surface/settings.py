@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from ...errors import ReconstructionError
 from ..fieldtypes import check_field_types
+from .stdmaps import CLAIMS
 
 __all__ = ["SurfaceSettings"]
 
@@ -48,13 +49,19 @@ class SurfaceSettings:
     #: 1 and reported as such; False: a global gain is set from the initialiser and the albedo is
     #: relative (its upper bound lifted)
     known_gain: bool = False
-    #: smoothness prior on the depth map's Laplacian: "none" (default: the std maps are the
-    #: data's own Fisher bounds), "auto" (weight by the discrepancy principle; the std are then
-    #: posterior std that do not cover the prior's bias: the edge nodes' get a larger albedo floor,
-    #: ``mask.edge_std``, which held most of it on the seeded study, not all), "gcv" (weight by generalised
-    #: cross-validation, which needs no noise level: robust to a model mismatch that scales
-    #: chi^2), or a fixed non-negative weight
+    #: smoothness prior on the depth map's Laplacian: "none" (default), "auto" (weight by the
+    #: discrepancy principle), "gcv" (weight by generalised cross-validation, which needs no
+    #: noise level: robust to a model mismatch that scales chi^2), or a fixed non-negative weight;
+    #: what the std maps and the mask then rest on: ``claims_under_prior``
     prior: str | float = "none"
+    #: under a prior (weight > 0): "data" (default) the std maps are the data's own Fisher bounds
+    #: at the regularised solution, H^-1, which do not rely on the prior being true, and under the
+    #: albedo's prior a mask node must hold evidence of its own in the data (``stdmaps.py``,
+    #: ``mask.surface_mask``); "posterior": the posterior's (H + lam R)^-1, narrower, which do not
+    #: hold the prior's bias (seeded study 1300-1323, prior "auto": 3 of 24 scenes SILENT-WRONG
+    #: with them, none with "data"), for a user who takes the prior as knowledge of the scene
+    #: (then the edge nodes' albedo floor is 25 % of the bright albedo, ``mask.edge_std``)
+    claims_under_prior: str = "data"
     #: relative weight of the albedo's smoothness penalty (the integral of |grad rho|^2 over the
     #: extent) beside the depth's (the integral of (del^2 z)^2), both under the prior's weight;
     #: 0: the albedos are free (on grids finer than the traces they are then not determined);
@@ -75,8 +82,8 @@ class SurfaceSettings:
     #: the edge nodes' std (``SurfaceResult.edge``: cells the surface's edge may cut and their
     #: neighbours) widened for the edge model's own error (``mask.edge_std``: floors in quadrature,
     #: 1 % of the cell pitch in depth, in albedo the larger of 5 % of the bright albedo (25 %
-    #: under the albedo's smoothness prior) and the node's departure from its mask neighbours'
-    #: mean; calibrated on the seeded study);
+    #: under the albedo's prior with ``claims_under_prior="posterior"``) and the node's departure
+    #: from its mask neighbours' mean; calibrated on the seeded study);
     #: False: the Fisher std of the noise alone, as for the other nodes
     edge_std_model: bool = True
     #: nodes whose albedo explains less of the data than noise would (``prune.py``: each node's
@@ -162,6 +169,9 @@ class SurfaceSettings:
                 raise ReconstructionError(f"prior must be 'auto', 'gcv', 'none' or a weight >= 0; got {self.prior!r}.")
         elif not (float(self.prior) >= 0):
             raise ReconstructionError(f"prior weight must be >= 0; got {self.prior!r}.")
+        if self.claims_under_prior not in CLAIMS:
+            raise ReconstructionError(f"claims_under_prior must be one of {list(CLAIMS)} (what the std maps rest on "
+                                      f"under a prior); got {self.claims_under_prior!r}.")
         if self.albedo_prior is not None:
             a = float(self.albedo_prior)            # a number: check_field_types
             if not (a >= 0 and math.isfinite(a)):
