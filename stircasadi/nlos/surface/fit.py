@@ -524,10 +524,10 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                 "in the wrong place or miss part of the scene, its error bars do not hold")
     shape = grid.shape
     edge = edge_map(mask.reshape(shape), rho.reshape(shape))
-    # pruned nodes (step 4b) beside the mask: their albedo is held at zero, a model choice and
-    # not an estimate (neighbouring albedos trade; one may have sat near zero at the first
-    # solve), so their numbers are marked with the edge's, not claimed
-    held = (bounds.hi[N:2 * N] <= 0.0).reshape(shape) if bounds is not None else np.zeros(shape, bool)
+    # pruned nodes (step 4b) or at the albedo's bound 0, beside the mask: a zero held or censored at a bound
+    # is no estimate the Fisher std hold (seed 1423: a node left dark inside a disk, 5.4 std off); edge numbers
+    at0 = ((bounds.hi[N:2 * N] <= 0.0) | (rho <= bounds.lo[N:2 * N])) if bounds is not None else np.zeros(N, bool)
+    held = at0.reshape(shape)
     held_edge = held & binary_dilation(mask.reshape(shape), structure=np.ones((3, 3), bool))
     edge = edge | held_edge
     step = depth_step(mask.reshape(shape), z.reshape(shape), z_std.reshape(shape), grid.hx, grid.hy,
@@ -547,9 +547,9 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
                                              prior=pb)
         notes.append(edge_note(int((edge & mask.reshape(shape)).sum()), int(mask.sum()), model, st.edge_std_model, pb))
     if held_edge.any():
-        notes.append(f"{int(held_edge.sum())} pruned node(s) beside the mask (albedo held at zero: no evidence of "
-                     "their own, step 4b) are marked in SurfaceResult.edge too: their albedo is a model choice, "
-                     "not an estimate, and their std do not hold its error")
+        notes.append(f"{int(held_edge.sum())} node(s) beside the mask with a zero albedo (pruned, step 4b, or at the "
+                     "albedo's bound) are marked in SurfaceResult.edge too: a zero held or censored at its bound is "
+                     "not an estimate, and their Fisher std do not hold its error")
     if chi2 / dof > 1 + 5 * math.sqrt(2.0 / dof):
         reasons.append(f"whitened chi2/dof = {chi2 / dof:.3g} (the model leaves structure in the "
                        "residual; std inflated by sqrt(chi2/dof))")
