@@ -163,12 +163,12 @@ def edge_std(edge, mask, z_std, rho, rho_std, n_std, pitch: float, factor: float
     at std 0.013-0.06; seed 1107, a cap: +0.06 at std 0.01). So each edge node's std is
     ``hypot(factor * std, floor)``: depth floor ``depth_floor`` x ``pitch`` (the cell's side, m);
     albedo floor the larger of ``albedo_floor`` (None: EDGE_ALBEDO_FLOOR, or EDGE_ALBEDO_FLOOR_PRIOR
-    where ``prior``: the albedos were fitted under their smoothness prior, their std the posterior's) x the mask's bright
-    albedo (the 90th percentile of its albedos: a fraction of the surface's own reflectance,
-    absolute or relative) and
-    ``roughness`` x |albedo - the mean albedo of the mask nodes in its 3 x 3 neighbourhood| (a
-    trade shows as neighbours alternating about their mean); each normal's std grows by its depth
-    std's ratio (the normals follow from the depths). Nodes off the edge keep their std.
+    where ``prior``: the albedos were fitted under their smoothness prior, their std the
+    posterior's) x the mask's bright albedo (the 90th percentile of its albedos: a fraction of
+    the surface's own reflectance, absolute or relative) and ``roughness`` x |albedo - the mean
+    albedo of the mask nodes in its 3 x 3 neighbourhood| (a trade shows as neighbours alternating
+    about their mean); each normal's std grows by its depth std's ratio (the normals follow from
+    the depths). Nodes off the edge keep their std.
 
     ``edge`` and ``mask`` are (ny, nx); the other arrays flat over the N nodes (``n_std`` (N,
     3)). Returns new (z_std, rho_std, n_std)."""
