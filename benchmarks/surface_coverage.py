@@ -193,22 +193,16 @@ def summary(rows: list, out: Path) -> int:
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("OK", "FLAGGED", "SILENT-WRONG", "CRASHED")}
     print("verdicts", counts)
 
-    def pooled(sel, key, n_of):
-        n = sum(n_of(r) for r in sel)
-        return (sum(r[key] * n_of(r) for r in sel) / n if n else float("nan")), n
-
     ok = [r for r in rows if r["verdict"] == "OK"]
     scored = [r for r in rows if r["verdict"] != "CRASHED"]
 
-    def within(sel):
-        c = [claims(r) for r in sel]
+    def within(sel, part=0):       # part of ``claims(parts=True)``: 0 pooled, 1 inner, 2 edge
+        c = [claims(r, parts=True)[part] for r in sel]
         n = sum(k[0] for k in c)
         return ((n - sum(k[1] for k in c)) / n if n else float("nan")), n, sum(k[2] for k in c)
 
     (c_ok, n_ok, b4_ok), (c_all, n_all, _) = within(ok), within(scored)
-    c_in, n_in = pooled([r for r in ok if r["n_numbers"]], "coverage2", lambda r: r["n_numbers"])
-    c_edge, n_edge = pooled([r for r in ok if r["edge_coverage2"] is not None], "edge_coverage2",
-                            lambda r: 2 * (r["n_full"] - r["n_inner"]))
+    (c_in, n_in, _), (c_edge, n_edge, _) = within(ok, 1), within(ok, 2)
     print(f"claims (every full node's depth and albedo) within 2 std: OK scenes {c_ok:.3f} of {n_ok} "
           f"({b4_ok} beyond 4 std), every scene {c_all:.3f} of {n_all}; of the OK scenes' claims, inner nodes "
           f"{c_in:.3f} of {n_in}, edge nodes {c_edge:.3f} of {n_edge}")

@@ -118,7 +118,7 @@ from .prior import GCV_PROBES, _choose_lambda, prior_operator, rejected, step_ch
 from .cuts import CUT_P, cell_offsets, fit_cut_cells  # noqa: F401  (CUT_P: step 4c's test level, read here)
 from .quadrature import refine_quadrature
 from .prune import node_evidence, prune_nodes
-from .stdmaps import data_covariance, std_maps
+from .stdmaps import data_covariance, gauss_newton_matrix, std_maps
 from .steps import step_labels
 from .lm import CONVERGED_STD, Bounds, last_decrease, prior_gradient, prior_vector, remaining_step, solve_lm
 from .explained import explained_returns
@@ -467,10 +467,7 @@ def _finish(model, state, y, wgt, R, lam, st, levels, reasons, gain_scale, noise
     npar = H.shape[0]
     dof = max(int(y.size) - npar, 1)
     levels[-1]["chi2_dof"] = chi2 / dof
-    A = H.copy()
-    M = R.shape[0]
-    A[:M, :M] += lam * R
-    A += (1e-12 * float(np.trace(A)) / npar) * np.eye(npar)
+    A = gauss_newton_matrix(H, R, lam)
     C = np.linalg.inv(A)
     infl = max(1.0, chi2 / dof)
     z, rho = state.z, state.rho

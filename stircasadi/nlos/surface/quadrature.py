@@ -26,6 +26,7 @@ import numpy as np
 
 from .lm import CONVERGED_STD, _free, prior_gradient
 from .mask import bright_nodes
+from .stdmaps import gauss_newton_matrix
 
 __all__ = ["Q_MAX", "refine_quadrature"]
 
@@ -37,11 +38,7 @@ def _newton(model, state, y, wgt, lam, R) -> tuple[dict, np.ndarray, np.ndarray]
     """The float64 linearisation of ``model`` at ``state``, its Gauss-Newton matrix with the
     prior (a 1e-12 ridge) and the gradient with the prior."""
     lin = model.linearise(state, y, wgt, dtype=np.float64)
-    A = lin["H"].copy()
-    npar, M = A.shape[0], R.shape[0]
-    A[:M, :M] += lam * R
-    A += (1e-12 * float(np.trace(A)) / npar) * np.eye(npar)
-    return lin, A, prior_gradient(lin["g"], state, lam, R)
+    return lin, gauss_newton_matrix(lin["H"], R, lam), prior_gradient(lin["g"], state, lam, R)
 
 
 def _change_in_std(fine, coarse, state, y, wgt, lam, R, bounds, z) -> tuple[dict, dict]:

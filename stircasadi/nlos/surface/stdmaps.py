@@ -30,18 +30,28 @@ import numpy as np
 
 from .grid import DepthGrid, normal_std
 
-__all__ = ["CLAIMS", "std_maps", "data_covariance"]
+__all__ = ["CLAIMS", "std_maps", "gauss_newton_matrix", "data_covariance"]
 
 #: what a fit's std maps rest on under a prior (``SurfaceSettings.claims_under_prior``)
 CLAIMS = ("data", "posterior")
 
 
+def gauss_newton_matrix(H: np.ndarray, R=None, lam: float = 0.0) -> np.ndarray:
+    """A = H + lam R (R over the first R.shape[0] unknowns, the prior's) plus a ridge of 1e-12 of
+    A's mean diagonal, so unknowns the data do not see, e.g. the depth of a node with zero albedo,
+    get a very large but finite variance in A^-1; ``H`` is not changed."""
+    A = np.array(H, dtype=float, copy=True)
+    n = A.shape[0]
+    if R is not None:
+        M = R.shape[0]
+        A[:M, :M] += lam * R
+    A += (1e-12 * float(np.trace(A)) / n) * np.eye(n)
+    return A
+
+
 def data_covariance(H: np.ndarray) -> np.ndarray:
-    """The data's own Fisher bound H^-1 (the same relative ridge, 1e-12 of the mean diagonal, as
-    the posterior's, so unknowns the data do not see, e.g. the depth of a node with zero albedo,
-    come out with a very large but finite variance)."""
-    n = H.shape[0]
-    return np.linalg.inv(H + (1e-12 * float(np.trace(H)) / n) * np.eye(n))
+    """The data's own Fisher bound H^-1 (with the same relative ridge as the posterior's)."""
+    return np.linalg.inv(gauss_newton_matrix(H))
 
 
 def std_maps(grid: DepthGrid, C: np.ndarray, infl: float, z: np.ndarray, glob=()):
