@@ -19,7 +19,8 @@ class VolumeSettings:
     #: zero every bin earlier than this path length (metres) to remove the wall's own return;
     #: None picks it from the data (past the summed histogram's early peak)
     gate_m: float | None = None
-    #: keep only path lengths below this (metres); None keeps the whole record
+    #: keep only path lengths below this (metres); None keeps the whole record (the volumes and,
+    #: with method "surface", the surface fit and its explained-returns check)
     t_max: float | None = None
     #: Lambertian (1/r^4) radiometric falloff; False = retroreflective (1/r^2)
     diffuse: bool = True
