@@ -5,11 +5,11 @@
                                  [--max-iter 12] [--gate 0.6] [--init-fraction 0.25]
 
 The scan is read from ``$STIRCASADI_DATA/otoole2018_confocal``, binned to 16 ps, gated at
-``--gate`` metres of path and cut at ``--t-max`` (the volume and the surface fit alike). Wall
-points are summed in ``--wall-step`` x ``--wall-step`` blocks; a letter needs at least 32 x 32
-traces (notebook 05, "How many wall points does a letter need?"). The fit is initialised by LCT and
-runs coarse to fine. It prints one row with the wall time, the process's maximum resident memory,
-chi2/dof, the mask's size, ``success`` and the reasons. It writes
+``--gate`` metres of path and the LCT volume cut at ``--t-max`` (the surface fit sees the whole
+record). Wall points are summed in ``--wall-step`` x ``--wall-step`` blocks; a letter needs at
+least 32 x 32 traces (notebook 05, "How many wall points does a letter need?"). The fit is
+initialised by LCT and runs coarse to fine. It prints one row with the wall time, the process's
+maximum resident memory, chi2/dof, the mask's size, ``success`` and the reasons. It writes
 ``benchmarks/results/letters_<file>_<nodes>.json``, the maps (``.npz``) and a picture ``.png``
 beside it: the LCT initialiser's albedo, the surface's albedo over the grid and inside the mask,
 and its depth inside the mask, all seen from the wall.

@@ -11,9 +11,8 @@ Options (``**options``): the fields of ``VolumeSettings`` and ``SurfaceSettings`
 ``init`` ("lct", "fk" or "bp": the initialiser of the surface fit), ``wall_step`` (keep every
 k-th scan point per side of a regular confocal scan for the surface fit: its cost grows with
 traces x nodes) and ``gain`` (an absolute relay gain: sets ``known_gain``). ``t_max`` (a
-``VolumeSettings`` field) cuts the surface fit's data as it cuts the volume's: the fit and its
-explained-returns check see only paths below it (a return beyond, e.g. the room behind a letter,
-is then neither fitted nor searched for; ``surface.extras["explained"]["window"]`` states the range).
+``VolumeSettings`` field) is the volume's window only: the surface fit and its explained-returns
+check see the whole record after the gate, so a return beyond ``t_max`` still fails the check.
 """
 from __future__ import annotations
 
@@ -159,14 +158,7 @@ def estimate_capture(capture, method: str = "surface", out_dir=None, **options) 
         rl = subsample_confocal(relay, step) if (step > 1 and regular) else relay
         if vst.bin_factor > 1:
             rl = _rebin(rl, vst.bin_factor)
-        if vst.t_max is not None:
-            lo = rl.grid.start if gate is None else max(rl.grid.start, float(gate))
-            if vst.t_max <= lo + 2 * rl.grid.bin_width:
-                raise ReconstructionError(f"t_max={vst.t_max} m of path keeps fewer than 2 bins of the record "
-                                          f"[{rl.grid.start:.4g}, {rl.grid.end:.4g}) m after the gate "
-                                          f"({lo:.4g} m); raise it above the gate or leave it None.")
-        # the paths the user kept (``t_max``) are what the fit and its explained-returns check see
-        surf = fit_surface(rl, maps, sst, gate=gate, t_max=vst.t_max)
+        surf = fit_surface(rl, maps, sst, gate=gate)
         est.surface = surf
         stages["surface"] = {"status": "; ".join(l["status"] for l in surf.levels),
                              "success": surf.success,

@@ -19,8 +19,10 @@ class VolumeSettings:
     #: zero every bin earlier than this path length (metres) to remove the wall's own return;
     #: None picks it from the data (past the summed histogram's early peak)
     gate_m: float | None = None
-    #: keep only path lengths below this (metres); None keeps the whole record (the volumes and,
-    #: with method "surface", the surface fit and its explained-returns check)
+    #: keep only path lengths below this (metres) in the volume; None keeps the whole record. The
+    #: surface fit (method "surface") models its own windows around the surface and its
+    #: explained-returns check searches the whole record after the gate: a cut there ended the
+    #: 32 x 32 chart's window inside its echo and tilted its plane 2.3 -> 6.6 deg (BENCHMARKS.md)
     t_max: float | None = None
     #: Lambertian (1/r^4) radiometric falloff; False = retroreflective (1/r^2)
     diffuse: bool = True

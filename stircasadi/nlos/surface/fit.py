@@ -161,7 +161,7 @@ def noise_weights(y: np.ndarray, sigma, override: float | None = None) -> tuple[
 
 
 def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = None,
-                gate: float | None = None, t_max: float | None = None) -> SurfaceResult:
+                gate: float | None = None) -> SurfaceResult:
     """Fit a depth-map surface with albedo to ``relay``'s traces, starting from ``init`` maps.
 
     Parameters
@@ -170,7 +170,6 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     init : depth / albedo / mask maps of a volumetric reconstruction in ``relay.frame``.
     settings : ``SurfaceSettings``.
     gate : earliest path length to model (the wall's own return lies before it).
-    t_max : last path length kept (the fit and its checks; the direct return is measured on all).
 
     Returns
     -------
@@ -181,8 +180,7 @@ def fit_surface(relay: Relay, init: Maps, settings: SurfaceSettings | None = Non
     t_start = time.perf_counter()
     if relay.n_traces < 4:
         raise ReconstructionError(f"A surface fit needs at least 4 traces; got {relay.n_traces}.")
-    r0, q_dir = _response0(relay, st, gate)       # the direct return's floor: the record's late bins
-    relay = relay if t_max is None else relay.window(relay.grid.start, t_max)
+    r0, q_dir = _response0(relay, st, gate)
     w = relay.grid.bin_width
     slack = st.z_slack if st.z_slack is not None else 1.5 * max(w, r0.sigma)
     sig_b = (r0.sigma / 5.0, 5.0 * r0.sigma)
