@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     dt = time.perf_counter() - t0
     s = est.surface
     row = {"file": a.file, "wall_step": a.wall_step, "traces": int(s.extras["n_traces"]), "nodes": a.nodes,
-           "levels": a.levels, "prior": a.prior, "init_fraction": a.init_fraction, "gate_m": a.gate, "prior_weight": s.prior_weight,
+           "levels": a.levels, "prior": a.prior, "init_fraction": a.init_fraction, "gate_m": a.gate,
+           "prior_weight": s.prior_weight,
            "albedo_prior": s.extras["albedo_prior"], "time_s": dt,
            "max_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20,
            "chi2_dof": s.chi2_dof, "mask_nodes": int(s.mask.sum()), "success": bool(s.success),
@@ -74,11 +75,11 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     from stircasadi.nlos.pictures import wall_view
+    m = est.maps
     np.savez_compressed(out.with_suffix(".npz"), x=s.grid.x, y=s.grid.y, depth=s.depth, depth_std=s.depth_std,
                         albedo=s.albedo, albedo_std=s.albedo_std, mask=s.mask, edge=s.edge,
-                        lct_x=est.maps.x, lct_y=est.maps.y, lct_albedo=est.maps.albedo)
+                        lct_x=m.x, lct_y=m.y, lct_albedo=m.albedo)
     fig, ax = plt.subplots(1, 4, figsize=(16, 4))
-    m = est.maps
     wall_view(ax[0], m.albedo, m.x, m.y, cmap="gray")
     ax[0].set_title("LCT (initialiser) albedo")
     wall_view(ax[1], s.albedo, s.grid.x, s.grid.y, cmap="gray")

@@ -7,17 +7,17 @@ When to use: called by ``fit_surface`` once its last level is solved; nothing el
 background's) into one-sigma std of depth, albedo and the normal's components (the normals
 linearised through the depth gradients), inflated by sqrt(chi2/dof) when above 1.
 
-Under a prior (weight lam > 0, operator R) two covariances are at hand at the solution:
-the posterior's (H + lam R)^-1 and the data's own Fisher bound H^-1 (H = J^T W J). The
-posterior's std are narrower, and they hold the estimate's scatter about its mean, not the bias
-the prior adds to that mean: on the seeded study's scenes 1300-1323 under ``prior="auto"`` (the
-posterior's std, edge nodes widened) 3 of 24 scenes were SILENT-WRONG, errors up to 3.9 of those
-std, neighbouring columns of a square trading albedo at 2.1-2.3 std (seed 1314). The data's std
-(1.7-3.2x the posterior's at the median over the mask on 1305 and 1314, measured) do not rely on
-the prior being true: the regularised estimate's own noise covariance (H + lam R)^-1 H (H + lam R)^-1 is narrower
+Under a prior (weight lam > 0, operator R) two covariances are at hand at the solution: the
+posterior's (H + lam R)^-1 and the data's own Fisher bound H^-1 (H = J^T W J). The posterior's std
+are narrower, and they hold the estimate's scatter about its mean, not the bias the prior adds to
+that mean: on the seeded study's scenes 1300-1323 under ``prior="auto"`` (the posterior's std, edge
+nodes widened) 3 of 24 scenes were SILENT-WRONG, errors up to 3.9 of those std, neighbouring
+columns of a square trading albedo at 2.1-2.3 std (seed 1314). The data's std (1.7-3.2x the
+posterior's at the median over the mask on 1305 and 1314, measured) do not rely on the prior being
+true: the regularised estimate's own noise covariance (H + lam R)^-1 H (H + lam R)^-1 is narrower
 than either, and its bias, -(H + lam R)^-1 lam R x, is what the prior's pull leaves; the data's
-bound is the std an estimate of the same unknowns without the prior would have. So the maps of
-a fit under a prior are the data's by default (``SurfaceSettings.claims_under_prior="data"``;
+bound is the std an estimate of the same unknowns without the prior would have. So the maps of a
+fit under a prior are the data's by default (``SurfaceSettings.claims_under_prior="data"``;
 "posterior" for a user who takes the prior as knowledge of the scene). The fit's checks (the
 remaining step, the depth step, the mask's significance) read the posterior's either way.
 
