@@ -43,6 +43,7 @@ import scipy.sparse as sp
 
 from ...errors import ReconstructionError
 from ..relay import Relay
+from .blas import blas_threads, gram_lower
 from .chunks import run_chunks
 from .jit import compiled as _compiled
 from .grid import DepthGrid
@@ -58,18 +59,9 @@ __all__ = ["SurfaceModel", "SurfaceState"]
 PREDICT_CHUNK_BYTES = 12 * 2 ** 20
 
 
-def _gram_upper(J: np.ndarray) -> np.ndarray:
-    """The upper triangle of J^T J by the symmetric rank-k update (BLAS syrk: half the products
-    of a general matrix product), in J's precision (the caller adds it into its float64 sum: a
-    float32 matrix is widened element by element there, exactly, without a float64 copy of it);
-    the lower triangle holds no meaning (``_symmetrise`` once the chunks are summed)."""
-    from scipy.linalg import blas
-    f = blas.ssyrk if J.dtype == np.float32 else blas.dsyrk
-    return f(1.0, J.T, trans=0, lower=0)   # J.T is Fortran-ordered
-
-
-def _symmetrise(U: np.ndarray) -> np.ndarray:
-    return np.triu(U) + np.triu(U, 1).T
+def _symmetrise(L: np.ndarray) -> np.ndarray:
+    """The symmetric matrix whose lower triangle is ``L``'s."""
+    return np.tril(L) + np.tril(L, -1).T
 
 
 @dataclass
@@ -524,12 +516,14 @@ class SurfaceModel:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
             return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
-        for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
-            chi2 += chi2c
-            g += gc
-            if need_h:
-                H += Hc
-        return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}
+        # (with workers, each worker's syrk runs on one BLAS thread, without the GIL: ``blas.py``)
+        with blas_threads(1 if self.workers > 1 else None):
+            for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
+                chi2 += chi2c
+                g += gc
+                if need_h:
+                    H += Hc
+        return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}   # (H: lower triangle)
 
     def _gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype) -> np.ndarray:
         """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
@@ -547,9 +541,12 @@ class SurfaceModel:
         rmap[ru] = np.arange(len(ru))
         R = len(ru)
         rows = rmap[rows_loc]
-        ng = len(pre)
+        ng, npost = len(pre), len(post)
         K = self.K
-        Jc = np.zeros((R, 2 * N + ng + self.E * K), dtype=dtype)
+        # the columns in ``pack``'s order: z, rho, the core's globals (pre), the others (post),
+        # the centroid offsets; the post columns are set after the slow tails' filter (it does
+        # not act on them: zero until then, they stay zero through it)
+        Jc = np.zeros((R, 2 * N + ng + npost + self.E * K), dtype=dtype)
         # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
         # (a pair's bin touches one node's six local unknowns), times the stacked operators
         # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
@@ -570,15 +567,15 @@ class SurfaceModel:
             kmap[self.onodes] = np.arange(K)
             kk = kmap[node]
             on = kk >= 0
-            base = rows[on] * Jc.shape[1] + 2 * N + ng + self.E * kk[on]
+            base = rows[on] * Jc.shape[1] + 2 * N + ng + npost + self.E * kk[on]
             for e in range(self.E):
                 Jc.ravel()[base + e] = loc[7 + e][on]
         if resp.slow:
             Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
-        Jc = np.hstack([Jc[:, :2 * N + ng]] + [c.ravel()[ru][:, None].astype(dtype) for c in post]
-                       + [Jc[:, 2 * N + ng:]])
+        for i, c in enumerate(post):
+            Jc[:, 2 * N + ng + i] = c.ravel()[ru]
         Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
-        H = _gram_upper(Jc)
+        H = gram_lower(Jc)
         if not resp.slow:
             rest = np.ones(nt * T, bool)
             rest[ru] = False
@@ -590,7 +587,7 @@ class SurfaceModel:
             if B is not None:
                 idx = 2 * N + np.array(bi)
                 H = H.astype(np.float64)
-                H[np.ix_(idx, idx)] += np.triu((B * wr[:, None]).T @ B)
+                H[np.ix_(idx, idx)] += np.tril(((B * wr[:, None]).T @ B).T)   # (syrk's upper one, transposed)
         return H
 
     def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:
