@@ -587,7 +587,9 @@ class SurfaceModel:
             if B is not None:
                 idx = 2 * N + np.array(bi)
                 H = H.astype(np.float64)
-                H[np.ix_(idx, idx)] += np.tril(((B * wr[:, None]).T @ B).T)   # (syrk's upper one, transposed)
+                # (the lower triangle of the product's transpose: the entries the upper-triangle
+                # sum of earlier versions took, so the numbers are unchanged)
+                H[np.ix_(idx, idx)] += np.tril(((B * wr[:, None]).T @ B).T)
         return H
 
     def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:
