@@ -26,7 +26,7 @@ def test_gram_lower_is_scipys_syrk_bit_for_bit_and_j_transpose_j(dtype, monkeypa
 
 
 def test_blas_threads_limits_inside_its_context_only():
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import threadpoolctl       # a dependency (pyproject.toml)
     blas_libs = [d for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
     if not blas_libs:
         pytest.skip("no BLAS library that threadpoolctl can see")
@@ -40,9 +40,10 @@ def test_blas_threads_limits_inside_its_context_only():
 
 
 def test_linearise_on_one_blas_thread_equals_the_librarys_threads():
-    """One chunk of 2 400 rows x 804 columns (a syrk the library splits over its threads):
-    ``workers=2`` runs it on one BLAS thread without the GIL, ``workers=1`` through the library's
-    own threads; float32 Gram (the solver's), the same bits."""
+    """Two chunks of 1 200 rows x 804 columns (syrks the library splits over its threads):
+    ``workers=2`` runs them on two threads, each syrk on one BLAS thread without the GIL,
+    ``workers=1`` one after the other through the library's own threads; float32 Gram (the
+    solver's), the same bits."""
     from stircasadi.nlos.relay import Relay
     from stircasadi.nlos.surface.grid import DepthGrid
     from stircasadi.nlos.surface.model import SurfaceModel, SurfaceState
@@ -59,8 +60,9 @@ def test_linearise_on_one_blas_thread_equals_the_librarys_threads():
     st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rng.uniform(0.3, 1, grid.n), 0.006, 0.01, (0.3,), 0.01)
     out = {}
     for workers in (1, 2):
-        model = SurfaceModel(grid, rl, resp, "lambertian", workers=workers)
-        assert len(list(model._chunks(T * 7 * grid.n * 4 * 2))) == 1     # (linearise's chunk, float32 with slow tails)
+        per = T * 7 * grid.n * 4 * 2        # linearise's bytes per trace (float32, slow tails)
+        model = SurfaceModel(grid, rl, resp, "lambertian", workers=workers, chunk_bytes=4 * per)
+        assert len(list(model._chunks(per))) == 2
         if workers == 1:
             y = model.predict(st) + 1e-3 * rng.standard_normal((P, T))
             wgt = rng.uniform(0.5, 2, (P, T))

@@ -516,9 +516,11 @@ class SurfaceModel:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
             return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
-        # (with workers, each worker's syrk runs on one BLAS thread, without the GIL: ``blas.py``)
-        with blas_threads(1 if self.workers > 1 else None):
-            for chi2c, gc, Hc in self._each_chunk(one, max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)):
+        # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
+        per = max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)
+        threaded = self.workers > 1 and len(list(self._chunks(per))) > 1
+        with blas_threads(1 if threaded else None):
+            for chi2c, gc, Hc in self._each_chunk(one, per):
                 chi2 += chi2c
                 g += gc
                 if need_h:
