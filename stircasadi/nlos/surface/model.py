@@ -350,21 +350,22 @@ class SurfaceModel:
         x = (self.t_start + (np.take(a, ep) + je)[:, None] * w - np.take(tau, ep, axis=0) + resp.mode_offset())
         se = np.take(s, ep, axis=0)
         # bin i of pair p: edges eo_p + i (left) and eo_p + i + 1 (right): every edge but each
-        # window's last is a left edge, so a bin's difference is the edges' consecutive one
-        # where ``left`` holds (the same subtraction as indexing both edges, one pass less)
+        # window's last is a left edge (rows ``li``), so a bin's difference is F[li + 1] - F[li]:
+        # two row gathers and one subtraction (the same numbers as np.diff masked by ``left``,
+        # which formed all E_edge - 1 differences first: 6.5 -> 3.7 ms per (262 000, 4) array)
         pe = np.repeat(np.arange(K), n)
         i = np.arange(len(pe)) - np.repeat(np.cumsum(n) - n, n)            # bin offset in its window
         left = np.ones(E_edge, bool)
         left[eo[1:][ne > 0] - 1] = False
-        left = left[:-1]
+        li = np.flatnonzero(left[:-1])
         out = {"pe": pe, "kk": a[pe] + i, "s": s}
         if not need_parts:
             F = resp.cdf(x, se)
-            out["B"] = np.diff(F, axis=0)[left]
+            out["B"] = np.take(F, li + 1, axis=0) - np.take(F, li, axis=0)
             return out
         parts = resp.parts(x, se, need_tail=need_tail)
         for key, arr in zip(("B", "dF", "dF1", "dFt"), parts):
-            out[key] = np.diff(arr, axis=0)[left]
+            out[key] = np.take(arr, li + 1, axis=0) - np.take(arr, li, axis=0)
         return out
 
     def _chunks(self, per_trace_bytes: int, cap: int | None = None):
