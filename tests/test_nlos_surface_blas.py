@@ -27,16 +27,18 @@ def test_gram_lower_is_scipys_syrk_bit_for_bit_and_j_transpose_j(dtype, monkeypa
 
 def test_blas_threads_limits_inside_its_context_only():
     import threadpoolctl       # a dependency (pyproject.toml)
-    blas_libs = [d for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
-    if not blas_libs:
+
+    def blas_threads_now():
+        return [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
+
+    before = blas_threads_now()
+    if not before:
         pytest.skip("no BLAS library that threadpoolctl can see")
-    before = [d["num_threads"] for d in blas_libs]
     with gb.blas_threads(1):
-        inside = [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
-    after = [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
-    assert inside == [1] * len(before) and after == before
+        inside = blas_threads_now()
+    assert inside == [1] * len(before) and blas_threads_now() == before
     with gb.blas_threads(None):         # None: nothing changes
-        assert [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"] == before
+        assert blas_threads_now() == before
 
 
 def test_linearise_on_one_blas_thread_equals_the_librarys_threads():

@@ -517,10 +517,9 @@ class SurfaceModel:
             return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
-        per = max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)
-        threaded = self.workers > 1 and len(list(self._chunks(per))) > 1
-        with blas_threads(1 if threaded else None):
-            for chi2c, gc, Hc in self._each_chunk(one, per):
+        chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
+        with blas_threads(1 if self.workers > 1 and len(chunks) > 1 else None):
+            for chi2c, gc, Hc in run_chunks(one, chunks, self.workers):
                 chi2 += chi2c
                 g += gc
                 if need_h:
