@@ -43,8 +43,9 @@ import scipy.sparse as sp
 
 from ...errors import ReconstructionError
 from ..relay import Relay
-from .blas import blas_threads, gram_lower
+from .blas import blas_threads
 from .chunks import run_chunks
+from .gram import chunk_gram
 from .jit import compiled as _compiled
 from .grid import DepthGrid
 from .physics import BRDFS, cell_variance, footprint_variance, relay_amplitude, relay_delay
@@ -472,15 +473,26 @@ class SurfaceModel:
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
             ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 8)
             S3 = Bw.shape[1]
-            Q = np.empty((len(pe), 3 * S3))
-            np.multiply(rr, Bw, out=Q[:, :S3])
-            np.multiply(Ar, s * dF1, out=Q[:, S3:2 * S3])
-            np.multiply(-Ar, dF, out=Q[:, 2 * S3:])
+            # the bins of a zero albedo (dark nodes LM holds at the bound: 25-55 % of the 32 x 32
+            # chart's) carry rho as a factor of every patch derivative: exact zeros, not formed
+            lit = None if rr.all() else np.flatnonzero(rr[:, 0])
+            pl = pe if lit is None else np.take(pe, lit)
+
+            def on_lit(a):
+                return a if lit is None else np.take(a, lit, axis=0)
+            Q = np.empty((len(pl), 3 * S3))
+            np.multiply(on_lit(rr), on_lit(Bw), out=Q[:, :S3])
+            np.multiply(on_lit(Ar), on_lit(s * dF1), out=Q[:, S3:2 * S3])
+            np.multiply(-on_lit(Ar), on_lit(dF), out=Q[:, 2 * S3:])
             # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
-            loc = np.empty((7 + self.E if self.K else 7, len(pe)))
+            loc = (np.empty if lit is None else np.zeros)((7 + self.E if self.K else 7, len(pe)))
             for c in range(6 + self.E if self.K else 6):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
-                loc[c if c < 6 else c + 1] = np.einsum("ej,ej->e", Q, np.take(Cc, pe, axis=0))
+                v = np.einsum("ej,ej->e", Q, np.take(Cc, pl, axis=0))
+                if lit is None:
+                    loc[c if c < 6 else c + 1] = v
+                else:
+                    loc[c if c < 6 else c + 1, lit] = v
             loc[6] = np.sum(Ae * Bw, axis=1)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
@@ -514,7 +526,7 @@ class SurfaceModel:
             gc[2 * N:g1] = gcols
             if self.K:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
-            return chi2c, gc, (self._gram(nt, rows_loc, node, loc, pre, post, wc, resp, dtype) if need_h else None)
+            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
@@ -525,73 +537,6 @@ class SurfaceModel:
                 if need_h:
                     H += Hc
         return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}   # (H: lower triangle)
-
-    def _gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype) -> np.ndarray:
-        """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
-        Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
-        time). Without slow tails only the rows some pair reaches are formed; the others carry
-        only the background."""
-        N, T = self.N, self.T
-        if resp.slow:
-            ru = np.arange(nt * T)
-        else:
-            used = np.zeros(nt * T, bool)
-            used[rows_loc] = True
-            ru = np.flatnonzero(used)
-        rmap = np.full(nt * T, -1)
-        rmap[ru] = np.arange(len(ru))
-        R = len(ru)
-        rows = rmap[rows_loc]
-        ng, npost = len(pre), len(post)
-        K = self.K
-        # the columns in ``pack``'s order: z, rho, the core's globals (pre), the others (post),
-        # the centroid offsets; the post columns are set after the slow tails' filter (it does
-        # not act on them: zero until then, they stay zero through it)
-        Jc = np.zeros((R, 2 * N + ng + npost + self.E * K), dtype=dtype)
-        # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
-        # (a pair's bin touches one node's six local unknowns), times the stacked operators
-        # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
-        # nodes' stencils allow); albedo columns: one entry per window bin
-        # (int32 indices: half the index traffic of the COO -> CSR conversion)
-        r32, n32 = rows.astype(np.int32), node.astype(np.int32)
-        cols = (n32[None] + np.int32(N) * np.arange(6, dtype=np.int32)[:, None]).ravel()
-        Jl = sp.coo_matrix((loc[:6].ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
-        Jz = (Jl @ self.ops_stack).tocoo()
-        del Jl
-        Jc[Jz.row, Jz.col] = Jz.data
-        del Jz
-        Jc.ravel()[rows * Jc.shape[1] + N + node] = loc[6]
-        for i, c in enumerate(pre):
-            Jc[:, 2 * N + i] = c.ravel()[ru]
-        if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
-            kmap = np.full(N, -1)
-            kmap[self.onodes] = np.arange(K)
-            kk = kmap[node]
-            on = kk >= 0
-            base = rows[on] * Jc.shape[1] + 2 * N + ng + npost + self.E * kk[on]
-            for e in range(self.E):
-                Jc.ravel()[base + e] = loc[7 + e][on]
-        if resp.slow:
-            Jc = resp.tail_filter(Jc.reshape(nt, T, -1), self.w, axis=1).reshape(nt * T, -1)
-        for i, c in enumerate(post):
-            Jc[:, 2 * N + ng + i] = c.ravel()[ru]
-        Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
-        H = gram_lower(Jc)
-        if not resp.slow:
-            rest = np.ones(nt * T, bool)
-            rest[ru] = False
-            wr = wc.ravel()[rest]
-            # the background columns of the rows no pair reaches (only "bg" is non-zero there
-            # unless a direct-return decay is modelled: add its columns too)
-            bi = [i for i, k in enumerate(self.glob) if k in ("bg", "bg1", "bgtau")]
-            B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
-            if B is not None:
-                idx = 2 * N + np.array(bi)
-                H = H.astype(np.float64)
-                # (the lower triangle of the product's transpose: the entries the upper-triangle
-                # sum of earlier versions took, so the numbers are unchanged)
-                H[np.ix_(idx, idx)] += np.tril(((B * wr[:, None]).T @ B).T)
-        return H
 
     def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:
         """(chi^2, model) at ``st``."""

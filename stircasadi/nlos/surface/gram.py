@@ -1,0 +1,90 @@
+"""One trace chunk's Gauss-Newton matrix J^T W J for ``SurfaceModel.linearise``: the chunk's
+Jacobian rows assembled densely over (z, rho, globals[, centroid offsets]) and multiplied by
+BLAS syrk (``blas.gram_lower``).
+
+When to use: called by ``SurfaceModel.linearise`` for each chunk; nothing else needs it.
+
+The depth columns come from each window bin's six local derivatives (the node's patch z, gx,
+gy, zxx, zyy, zxy) through the stacked difference operators in one sparse product; a bin of a
+zero albedo has none (every patch derivative carries the albedo as a factor), so only the
+``lit`` bins enter that product: the same matrix bit for bit, its zeros not formed.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .blas import gram_lower
+
+__all__ = ["chunk_gram"]
+
+
+def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=None) -> np.ndarray:
+    """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
+    Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
+    time). Without slow tails only the rows some pair reaches are formed; the others carry
+    only the background."""
+    N, T = model.N, model.T
+    if resp.slow:
+        ru = np.arange(nt * T)
+    else:
+        used = np.zeros(nt * T, bool)
+        used[rows_loc] = True
+        ru = np.flatnonzero(used)
+    rmap = np.full(nt * T, -1)
+    rmap[ru] = np.arange(len(ru))
+    R = len(ru)
+    rows = rmap[rows_loc]
+    ng, npost = len(pre), len(post)
+    K = model.K
+    # the columns in ``pack``'s order: z, rho, the core's globals (pre), the others (post),
+    # the centroid offsets; the post columns are set after the slow tails' filter (it does
+    # not act on them: zero until then, they stay zero through it)
+    Jc = np.zeros((R, 2 * N + ng + npost + model.E * K), dtype=dtype)
+    # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
+    # (a pair's bin touches one node's six local unknowns), times the stacked operators
+    # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
+    # nodes' stencils allow); albedo columns: one entry per window bin
+    # (int32 indices: half the index traffic of the COO -> CSR conversion)
+    # (``lit``: the bins whose patch derivatives were formed, the others' are zeros; None: all)
+    dl = loc[:6] if lit is None else np.take(loc[:6], lit, axis=1)
+    r32 = (rows if lit is None else np.take(rows, lit)).astype(np.int32)
+    n32 = (node if lit is None else np.take(node, lit)).astype(np.int32)
+    cols = (n32[None] + np.int32(N) * np.arange(6, dtype=np.int32)[:, None]).ravel()
+    Jl = sp.coo_matrix((dl.ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
+    Jz = (Jl @ model.ops_stack).tocoo()
+    del Jl
+    Jc[Jz.row, Jz.col] = Jz.data
+    del Jz
+    Jc.ravel()[rows * Jc.shape[1] + N + node] = loc[6]
+    for i, c in enumerate(pre):
+        Jc[:, 2 * N + i] = c.ravel()[ru]
+    if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
+        kmap = np.full(N, -1)
+        kmap[model.onodes] = np.arange(K)
+        kk = kmap[node]
+        on = kk >= 0
+        base = rows[on] * Jc.shape[1] + 2 * N + ng + npost + model.E * kk[on]
+        for e in range(model.E):
+            Jc.ravel()[base + e] = loc[7 + e][on]
+    if resp.slow:
+        Jc = resp.tail_filter(Jc.reshape(nt, T, -1), model.w, axis=1).reshape(nt * T, -1)
+    for i, c in enumerate(post):
+        Jc[:, 2 * N + ng + i] = c.ravel()[ru]
+    Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
+    H = gram_lower(Jc)
+    if not resp.slow:
+        rest = np.ones(nt * T, bool)
+        rest[ru] = False
+        wr = wc.ravel()[rest]
+        # the background columns of the rows no pair reaches (only "bg" is non-zero there
+        # unless a direct-return decay is modelled: add its columns too)
+        bi = [i for i, k in enumerate(model.glob) if k in ("bg", "bg1", "bgtau")]
+        B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
+        if B is not None:
+            idx = 2 * N + np.array(bi)
+            H = H.astype(np.float64)
+            # (the lower triangle of the product's transpose: the entries the upper-triangle
+            # sum of earlier versions took, so the numbers are unchanged)
+            H[np.ix_(idx, idx)] += np.tril(((B * wr[:, None]).T @ B).T)
+    return H

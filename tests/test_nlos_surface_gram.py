@@ -1,0 +1,54 @@
+"""A linearisation with dark nodes (``nlos/surface/gram.py`` and ``SurfaceModel.linearise``):
+the window bins of a zero albedo get no patch derivatives (they carry the albedo as a factor),
+so only the lit bins enter the depth columns' sparse product. The gradient and Gauss-Newton
+matrix must still be those of central differences of ``predict``, the dark nodes' own columns
+included: a dark node's albedo column is its pairs' kernel, and its depth moves its lit
+neighbours' normals."""
+import numpy as np
+import pytest
+
+from stircasadi.nlos.relay import Relay
+from stircasadi.nlos.surface.grid import DepthGrid
+from stircasadi.nlos.surface.model import SurfaceModel, SurfaceState
+from stircasadi.nlos.surface.response import Response
+from stircasadi.timegrid import TimeGrid
+
+FRAME = (np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
+
+
+@pytest.mark.parametrize("slow, sub", [((), 1), (((0.04, 0.3),), 2)])
+def test_dark_nodes_linearise_like_finite_differences(slow, sub):
+    """A 4 x 3 grid with three albedos exactly zero (node 1 among lit neighbours, nodes 6 and 7
+    side by side), five paired traces: g = J^T W r and H = J^T W J against central differences
+    of ``predict`` for every unknown, float64; the dark node 1's depth column is not empty (its
+    neighbours' central differences hold it) and its albedo column is its kernel's."""
+    rng = np.random.default_rng(11)
+    grid = DepthGrid(np.linspace(-0.1, 0.1, 4), np.linspace(-0.1, 0.1, 3), FRAME)
+    L = np.c_[rng.uniform(-0.2, 0.2, (5, 2)), np.zeros(5)]
+    D = np.c_[rng.uniform(-0.2, 0.2, (5, 2)), np.zeros(5)]
+    n = np.tile([0, 0, 1.0], (5, 1))
+    rl = Relay(np.zeros((5, 150)), TimeGrid(0.6, 0.004, 150), L, D, n, n, 0.0, 1.0)
+    model = SurfaceModel(grid, rl, Response("gaussian", 0.006, 0.0, slow), "lambertian", subsamples=sub)
+    rho = rng.uniform(0.3, 1, grid.n)
+    dark = [1, 6, 7]
+    rho[dark] = 0.0
+    st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rho, 0.006, 0.0, tuple(b for _, b in slow), 0.01)
+    y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
+    wgt = rng.uniform(0.5, 2, (5, 150))
+    lin = model.linearise(st, y, wgt, dtype=np.float64)
+    th = model.pack(st)
+    J = np.zeros((y.size, model.npar))
+    for i in range(model.npar):
+        h = 1e-6 * max(abs(th[i]), 1e-3)
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        J[:, i] = ((model.predict(model.unpack(tp, st)) - model.predict(model.unpack(tm, st))) / (2 * h)).ravel()
+    r = (lin["m"] - y).ravel()
+    g_fd = J.T @ (wgt.ravel() * r)
+    H_fd = J.T @ (wgt.ravel()[:, None] * J)
+    assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
+    assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
+    N = grid.n
+    assert H_fd[1, 1] > 1e-3 * np.median(np.diag(H_fd)[:N])                 # dark node 1's depth
+    assert np.all(np.diag(lin["H"])[N:2 * N][dark] > 0)                      # the dark nodes' albedos
