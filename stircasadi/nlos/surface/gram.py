@@ -19,12 +19,16 @@ from .blas import gram_lower
 __all__ = ["chunk_gram"]
 
 
-def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=None) -> np.ndarray:
+def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=None, zkeep=None) -> np.ndarray:
     """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
     Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
     time). Without slow tails only the rows some pair reaches are formed; the others carry
-    only the background."""
+    only the background. ``zkeep``: the nodes whose depth column some lit bin reaches (None:
+    all), the only depth columns formed: H over ``pack``'s unknowns less the other depths, in
+    their order (the depths left out have exact zero columns)."""
     N, T = model.N, model.T
+    nz = N if zkeep is None else len(zkeep)
+    g0 = nz + N                           # the first global's column
     if resp.slow:
         ru = np.arange(nt * T)
     else:
@@ -40,7 +44,8 @@ def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=N
     # the columns in ``pack``'s order: z, rho, the core's globals (pre), the others (post),
     # the centroid offsets; the post columns are set after the slow tails' filter (it does
     # not act on them: zero until then, they stay zero through it)
-    Jc = np.zeros((R, 2 * N + ng + npost + model.E * K), dtype=dtype)
+    C = g0 + ng + npost + model.E * K
+    Jc = np.zeros((R, C), dtype=dtype)
     # depth columns: the six local derivatives of each window bin, a sparse (R, 6 N) matrix
     # (a pair's bin touches one node's six local unknowns), times the stacked operators
     # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
@@ -54,23 +59,28 @@ def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=N
     Jl = sp.coo_matrix((dl.ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
     Jz = (Jl @ model.ops_stack).tocoo()
     del Jl
-    Jc[Jz.row, Jz.col] = Jz.data
+    if zkeep is None:
+        Jc[Jz.row, Jz.col] = Jz.data
+    else:
+        zmap = np.full(N, -1)
+        zmap[zkeep] = np.arange(nz)
+        Jc[Jz.row, zmap[Jz.col]] = Jz.data
     del Jz
-    Jc.ravel()[rows * Jc.shape[1] + N + node] = loc[6]
+    Jc.ravel()[rows * C + nz + node] = loc[6]
     for i, c in enumerate(pre):
-        Jc[:, 2 * N + i] = c.ravel()[ru]
+        Jc[:, g0 + i] = c.ravel()[ru]
     if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
         kmap = np.full(N, -1)
         kmap[model.onodes] = np.arange(K)
         kk = kmap[node]
         on = kk >= 0
-        base = rows[on] * Jc.shape[1] + 2 * N + ng + npost + model.E * kk[on]
+        base = rows[on] * C + g0 + ng + npost + model.E * kk[on]
         for e in range(model.E):
             Jc.ravel()[base + e] = loc[7 + e][on]
     if resp.slow:
         Jc = resp.tail_filter(Jc.reshape(nt, T, -1), model.w, axis=1).reshape(nt * T, -1)
     for i, c in enumerate(post):
-        Jc[:, 2 * N + ng + i] = c.ravel()[ru]
+        Jc[:, g0 + ng + i] = c.ravel()[ru]
     Jc *= np.sqrt(wc.ravel()[ru]).astype(dtype)[:, None]
     H = gram_lower(Jc)
     if not resp.slow:
@@ -82,7 +92,7 @@ def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=N
         bi = [i for i, k in enumerate(model.glob) if k in ("bg", "bg1", "bgtau")]
         B = np.stack([p.ravel()[rest] for p in post[-len(bi):]], axis=1) if bi else None
         if B is not None:
-            idx = 2 * N + np.array(bi)
+            idx = g0 + np.array(bi)
             H = H.astype(np.float64)
             # (the lower triangle of the product's transpose: the entries the upper-triangle
             # sum of earlier versions took, so the numbers are unchanged)

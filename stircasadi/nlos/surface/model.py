@@ -30,7 +30,10 @@ Gauss-Newton matrix is a sum of per-chunk products J^T W J (BLAS; float32 for th
 steps, float64 for the Fisher covariance); without slow tails, rows that no pair reaches only
 carry the background; with them, Phi is applied to the chunk's columns along time.
 Memory is bounded by ``chunk_bytes`` whatever the number of traces (a prediction's chunks by
-``PREDICT_CHUNK_BYTES`` too).
+``PREDICT_CHUNK_BYTES`` too). A node of albedo zero (LM holds 25-65 % of the 32 x 32 chart's
+nodes at that bound) deposits nothing, and every derivative of its bins but the albedo's carries
+the albedo as a factor: its bins get bin integrals only, and the depth columns that no lit node's
+stencil reaches are left out of the Gram products (``gram.py``), exact zeros either way.
 """
 from __future__ import annotations
 
@@ -319,7 +322,7 @@ class SurfaceModel:
 
     # ------------------------------------------------------------------ response windows
     def _windows(self, st: SurfaceState, resp: Response, tau, c2, need_parts: bool, need_tail: bool,
-                 active: np.ndarray | None = None):
+                 active: np.ndarray | None = None, lit: np.ndarray | None = None):
         """The bins each pair reaches (shared by its sub-samples), ragged: each pair p gets its
         own window of n_p bins, from its earliest sub-sample delay plus the core's left support
         to its latest plus the right support at the pair's own widest sub-sample, cut to the
@@ -330,7 +333,10 @@ class SurfaceModel:
         ``s`` (K, S) the per-sample widths, ``B`` (E, S) the core's bin integrals and, with
         ``need_parts``, ``dF`` / ``dF1`` [/ ``dFt``] (E, S): the bin differences of f, f'
         [and dF/dtail] (their edge values differenced over each bin). ``active`` (N,): the
-        nodes whose pairs get windows (the others none: their bins drop out of every sum)."""
+        nodes whose pairs get windows (the others none: their bins drop out of every sum).
+        ``lit`` (N,): the nodes whose bins need ``dF`` / ``dF1`` [/ ``dFt``] (a zero albedo's
+        multiply it): where some node is not, those come for ``out["lit"]``'s bins only (else
+        ``out["lit"]`` is None)."""
         s = np.sqrt(st.sigma ** 2 + c2)
         K = tau.shape[0]
         w = self.w
@@ -363,9 +369,17 @@ class SurfaceModel:
             F = resp.cdf(x, se)
             out["B"] = np.take(F, li + 1, axis=0) - np.take(F, li, axis=0)
             return out
-        parts = resp.parts(x, se, need_tail=need_tail)
+        out["lit"] = le = None
+        if lit is not None and not np.all(lit):
+            lp = np.tile(lit, K // self.N)
+            on = np.take(lp, ep)                                        # the lit pairs' edges
+            le = np.flatnonzero(on)
+            out["lit"] = lb = np.flatnonzero(np.take(lp, pe))
+            at = np.take(np.cumsum(on) - 1, np.take(li, lb))             # their left edges among le
+        parts = resp.parts(x, se, need_tail=need_tail, rows=le)
         for key, arr in zip(("B", "dF", "dF1", "dFt"), parts):
-            out[key] = np.take(arr, li + 1, axis=0) - np.take(arr, li, axis=0)
+            l0 = li if (le is None or key == "B") else at
+            out[key] = np.take(arr, l0 + 1, axis=0) - np.take(arr, l0, axis=0)
         return out
 
     def _chunks(self, per_trace_bytes: int, cap: int | None = None):
@@ -433,7 +447,6 @@ class SurfaceModel:
         need_tail = "tail" in self.glob
         dm = resp.d_mode()
         npar = self.npar
-        H = np.zeros((npar, npar)) if need_h else None
         g = np.zeros(npar)
         m = np.empty((self.P, T))
         chi2 = 0.0
@@ -444,13 +457,25 @@ class SurfaceModel:
             if np.any(rho[skip] != 0):
                 raise ReconstructionError("linearise(skip=...): a skipped node's albedo must be zero.")
             active = ~np.asarray(skip, bool)
+        # the depth columns the lit nodes' stencils reach (the others are exact zeros: not formed)
+        zkeep = keep = None
+        if need_h and not np.all(rho != 0):
+            reach = np.zeros(N, bool)
+            reach[self.ops_stack[(np.arange(6)[:, None] * N + np.flatnonzero(rho)).ravel()].indices] = True
+            if not reach.all():
+                zkeep = np.flatnonzero(reach)
+                keep = np.concatenate([zkeep, np.arange(N, npar)])
+        H = np.zeros((npar, npar) if keep is None else (len(keep), len(keep))) if need_h else None
 
         def one(t0, t1):
             nt = t1 - t0
             G, Jg = self._geometry(t0, t1, lz, True)
             A, tau, c2 = G[..., 0], G[..., 1], G[..., 2]                    # (K, S)
-            win = self._windows(st, resp, tau, c2, True, need_tail, active)
-            pe, Bw, dF, dF1 = win["pe"], win["B"], win["dF"], win["dF1"]   # (E,), (E, S)
+            # (the bins of a zero albedo, dark nodes LM holds at the bound: 25-65 % of the 32 x 32
+            # chart's, carry rho as a factor of every derivative but the albedo's: exact zeros,
+            # not formed; ``lit``: the others, None where every albedo is non-zero)
+            win = self._windows(st, resp, tau, c2, True, need_tail, active, rho != 0)
+            pe, Bw, dF, dF1, lit = win["pe"], win["B"], win["dF"], win["dF1"], win["lit"]   # (E,), (E, S)
             # (np.take: the same rows as fancy indexing, gathered faster)
             s = np.take(win["s"], pe, axis=0)
             rr = np.take(np.tile(rho, nt), pe)[:, None]
@@ -473,35 +498,47 @@ class SurfaceModel:
             #   factors (E, 3 S) once, the pairs' derivatives (K, 3 S) per unknown, one product
             ds = Jg[:, :, 2, :] / (2.0 * win["s"][:, :, None])             # d s / d(patch), (K, S, 8)
             S3 = Bw.shape[1]
-            # the bins of a zero albedo (dark nodes LM holds at the bound: 25-55 % of the 32 x 32
-            # chart's) carry rho as a factor of every patch derivative: exact zeros, not formed
-            lit = None if rr.all() else np.flatnonzero(rr[:, 0])
             pl = pe if lit is None else np.take(pe, lit)
 
             def on_lit(a):
                 return a if lit is None else np.take(a, lit, axis=0)
+            Arl, rows_l = on_lit(Ar), on_lit(rows_loc)
+
+            def to_rows_l(v):        # (lit bins,) -> (nt, T) binned
+                return np.bincount(rows_l, v, minlength=nt * T).reshape(nt, T)
             Q = np.empty((len(pl), 3 * S3))
             np.multiply(on_lit(rr), on_lit(Bw), out=Q[:, :S3])
-            np.multiply(on_lit(Ar), on_lit(s * dF1), out=Q[:, S3:2 * S3])
-            np.multiply(-on_lit(Ar), on_lit(dF), out=Q[:, 2 * S3:])
+            np.multiply(Arl, on_lit(s) * dF1, out=Q[:, S3:2 * S3])
+            np.multiply(-Arl, dF, out=Q[:, 2 * S3:])
+            # the gradient in float64 (exact, whatever ``dtype``): the slow tails' adjoint first;
+            # a local unknown's sum over its node's bins (the patch derivatives over the lit ones)
+            e = wc * rc
+            ef = resp.tail_filter(e, w, adjoint=True)
+            node = pe % N
+            er = ef.ravel()[rows_loc]
+            nl, erl = (node, er) if lit is None else (np.take(node, lit), np.take(er, lit))
             # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
             loc = (np.empty if lit is None else np.zeros)((7 + self.E if self.K else 7, len(pe)))
+            gl = np.empty((len(loc), N))
             for c in range(6 + self.E if self.K else 6):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
                 v = np.einsum("ej,ej->e", Q, np.take(Cc, pl, axis=0))
+                row = c if c < 6 else c + 1
                 if lit is None:
-                    loc[c if c < 6 else c + 1] = v
+                    loc[row] = v
                 else:
-                    loc[c if c < 6 else c + 1, lit] = v
+                    loc[row, lit] = v
+                gl[row] = np.bincount(nl, v * erl, minlength=N)
             loc[6] = np.sum(Ae * Bw, axis=1)
+            gl[6] = np.bincount(node, loc[6] * er, minlength=N)
             # global columns, binned: core ones before the slow tails (list pre), others after
-            shift = to_rows(np.sum(Ar * dF, axis=1))                        # d G / d m0
+            shift = to_rows_l(np.sum(Arl * dF, axis=1))                     # d G / d m0
             pre, post = [], []
             for name in self.glob:
                 if name == "sigma":
-                    pre.append(to_rows(np.sum(Ar * st.sigma * dF1, axis=1)) + dm[0] * shift)
+                    pre.append(to_rows_l(np.sum(Arl * st.sigma * dF1, axis=1)) + dm[0] * shift)
                 elif name == "tail":
-                    pre.append(to_rows(np.sum(Ar * win["dFt"], axis=1)) + dm[1] * shift)
+                    pre.append(to_rows_l(np.sum(Arl * win["dFt"], axis=1)) + dm[1] * shift)
                 elif name.startswith("beta"):
                     i = int(name[4:])
                     from .response import exp_filter
@@ -512,12 +549,6 @@ class SurfaceModel:
                     post.append(d_b1)
                 else:
                     post.append(d_bt)
-            # the gradient in float64 (exact, whatever ``dtype``): the slow tails' adjoint first
-            e = wc * rc
-            ef = resp.tail_filter(e, w, adjoint=True)
-            node = pe % N
-            er = ef.ravel()[rows_loc]
-            gl = np.stack([np.bincount(node, loc[c] * er, minlength=N) for c in range(len(loc))])
             gc = np.zeros(npar)
             gc[:N] = gl[0] + sum(self.opsT[c] @ gl[c] for c in range(1, 6))
             gc[N:2 * N] = gl[6]
@@ -526,7 +557,7 @@ class SurfaceModel:
             gc[2 * N:g1] = gcols
             if self.K:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
-            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit) if need_h else None)
+            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
@@ -536,6 +567,9 @@ class SurfaceModel:
                 g += gc
                 if need_h:
                     H += Hc
+        if keep is not None:
+            H, Hk = np.zeros((npar, npar)), H
+            H[np.ix_(keep, keep)] = Hk
         return {"m": m, "chi2": chi2, "g": g, "H": None if H is None else _symmetrise(H)}   # (H: lower triangle)
 
     def objective(self, st: SurfaceState, y, wgt) -> tuple[float, np.ndarray]:

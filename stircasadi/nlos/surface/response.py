@@ -110,21 +110,27 @@ class Response:
             return -5.5 * s_max - m0, 5.5 * s_max - m0
         return -5.5 * s_max - m0, 5.5 * s_max + 16.0 * self.tail - m0
 
-    def parts(self, x, s, need_tail: bool = False):
+    def parts(self, x, s, need_tail: bool = False, rows=None):
         """The core's (F, f, f') at offsets ``x`` (already shifted by the mode) for Gaussian
-        widths ``s`` (broadcast); with ``need_tail`` also dF/dtail (zeros for a Gaussian)."""
+        widths ``s`` (broadcast); with ``need_tail`` also dF/dtail (zeros for a Gaussian).
+        ``rows``: F at every row of ``x`` (its first axis), the others at these rows only (the
+        same numbers there)."""
         x = np.asarray(x, float)
         s = np.asarray(s, float)
+        F = None
+        if rows is not None:
+            F = self.cdf(x, s)
+            x, s = np.take(x, rows, axis=0), np.take(s, rows, axis=0)
         u = x / s
         ph = _phi(u)
         if self.kind == "gaussian":
-            F = ndtr(u)
+            F = ndtr(u) if F is None else F
             f = ph / s
             f1 = -u / s * f
-            return (F, f, f1, np.zeros_like(F)) if need_tail else (F, f, f1)
+            return (F, f, f1, np.zeros_like(f)) if need_tail else (F, f, f1)
         tau = self.tail
         T = _emg_T(x, s, tau)
-        F = ndtr(u) - T
+        F = ndtr(u) - T if F is None else F
         f = T / tau
         f1 = (ph / s - f) / tau
         if not need_tail:
