@@ -117,3 +117,28 @@ def stanford_twin(path, depth=0.400, side=0.25, tilt_deg=0.0, brdf="retroreflect
     y = np.random.default_rng(seed).poisson(lam)
     savemat(path, {"rect_data": y.reshape(n, n, n_bins).astype(np.uint16), "width": np.array([[half]])})
     return lam
+
+
+
+def linearise_against_fd(model, st, rng, shape):
+    """``model.linearise`` (float64) at ``st`` on noisy data drawn from ``rng`` (the model plus
+    1e-3 noise, weights in [0.5, 2], ``shape`` (traces, bins)) against central differences of
+    ``predict`` (step 1e-6 of each unknown, at least 1e-9): asserts g = J^T W r and H = J^T W J
+    agree, and returns (the linearisation, the finite-difference H)."""
+    y = model.predict(st) + 1e-3 * rng.standard_normal(shape)
+    wgt = rng.uniform(0.5, 2, shape)
+    lin = model.linearise(st, y, wgt, dtype=np.float64)
+    th = model.pack(st)
+    J = np.zeros((y.size, model.npar))
+    for i in range(model.npar):
+        h = 1e-6 * max(abs(th[i]), 1e-3)
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        J[:, i] = ((model.predict(model.unpack(tp, st)) - model.predict(model.unpack(tm, st))) / (2 * h)).ravel()
+    r = (lin["m"] - y).ravel()
+    g_fd = J.T @ (wgt.ravel() * r)
+    H_fd = J.T @ (wgt.ravel()[:, None] * J)
+    assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
+    assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
+    return lin, H_fd

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from nlos_twins import WALL_RHO, confocal_capture, render, surface_patches
+from nlos_twins import WALL_RHO, confocal_capture, linearise_against_fd, render, surface_patches
 from stircasadi.brdf import Lambertian
 from stircasadi.errors import ReconstructionError
 from stircasadi.irf import GaussianIRF
@@ -83,22 +83,7 @@ def test_model_gradient_and_gauss_newton_match_finite_differences(kind, brdf, co
                       off=(np.c_[rng.uniform(-0.02, 0.02, (3, 2)), rng.uniform(0.1, 0.6, (3, E - 2))]
                            * np.r_[1, 1, 1, 1, -1][:E] if offs else None))
     assert model.npar == 2 * grid.n + len(model.glob) + (3 * E if offs else 0)
-    y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
-    wgt = rng.uniform(0.5, 2, (5, 150))
-    lin = model.linearise(st, y, wgt, dtype=np.float64)
-    th = model.pack(st)
-    J = np.zeros((y.size, model.npar))
-    for i in range(model.npar):
-        h = 1e-6 * max(abs(th[i]), 1e-3)
-        tp, tm = th.copy(), th.copy()
-        tp[i] += h
-        tm[i] -= h
-        J[:, i] = ((model.predict(model.unpack(tp, st)) - model.predict(model.unpack(tm, st))) / (2 * h)).ravel()
-    r = (lin["m"] - y).ravel()
-    g_fd = J.T @ (wgt.ravel() * r)
-    H_fd = J.T @ (wgt.ravel()[:, None] * J)
-    assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
-    assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
+    lin, H_fd = linearise_against_fd(model, st, rng, (5, 150))
     assert np.allclose(lin["m"], model.predict(st), atol=1e-14)
     if offs:     # the offsets (and shrinks) move or spread the cells' returns: their columns are not empty
         assert np.all(np.diag(lin["H"])[-3 * E:] > 1e-6 * np.median(np.diag(lin["H"])[:grid.n]))

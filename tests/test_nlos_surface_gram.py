@@ -7,6 +7,7 @@ neighbours' normals."""
 import numpy as np
 import pytest
 
+from nlos_twins import linearise_against_fd
 from stircasadi.nlos.relay import Relay
 from stircasadi.nlos.surface.grid import DepthGrid
 from stircasadi.nlos.surface.model import SurfaceModel, SurfaceState
@@ -47,22 +48,7 @@ def test_dark_nodes_linearise_like_finite_differences(kind, slow, sub, wide, mon
     dark = [1, 6, 7] + ([k for k in range(grid.n) if k % 10 >= 6] if wide else [])
     rho[dark] = 0.0
     st = SurfaceState(0.4 + 0.02 * rng.standard_normal(grid.n), rho, 0.006, tail, tuple(b for _, b in slow), 0.01)
-    y = model.predict(st) + 1e-3 * rng.standard_normal((5, 150))
-    wgt = rng.uniform(0.5, 2, (5, 150))
-    lin = model.linearise(st, y, wgt, dtype=np.float64)
-    th = model.pack(st)
-    J = np.zeros((y.size, model.npar))
-    for i in range(model.npar):
-        h = 1e-6 * max(abs(th[i]), 1e-3)
-        tp, tm = th.copy(), th.copy()
-        tp[i] += h
-        tm[i] -= h
-        J[:, i] = ((model.predict(model.unpack(tp, st)) - model.predict(model.unpack(tm, st))) / (2 * h)).ravel()
-    r = (lin["m"] - y).ravel()
-    g_fd = J.T @ (wgt.ravel() * r)
-    H_fd = J.T @ (wgt.ravel()[:, None] * J)
-    assert np.allclose(lin["g"], g_fd, rtol=1e-4, atol=1e-5 * np.abs(g_fd).max())
-    assert np.allclose(lin["H"], H_fd, rtol=1e-5, atol=1e-8 * np.abs(H_fd).max())
+    lin, H_fd = linearise_against_fd(model, st, rng, (5, 150))
     N = grid.n
     assert H_fd[1, 1] > 1e-3 * np.median(np.diag(H_fd)[:N])                 # dark node 1's depth
     assert np.all(np.diag(lin["H"])[N:2 * N][dark] > 0)                      # the dark nodes' albedos
