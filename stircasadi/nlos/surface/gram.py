@@ -19,11 +19,13 @@ from .blas import gram_lower
 __all__ = ["chunk_gram"]
 
 
-def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=None, zkeep=None) -> np.ndarray:
+def chunk_gram(model, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit=None, zkeep=None) -> np.ndarray:
     """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
     Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
     time). Without slow tails only the rows some pair reaches are formed; the others carry
-    only the background. ``zkeep``: the nodes whose depth column some lit bin reaches (None:
+    only the background. ``dv``: the local derivatives (patch unknowns, then any centroid
+    offsets [shrinks]) of the bins ``lit`` (None: every bin); ``la``: every bin's albedo
+    derivative. ``zkeep``: the nodes whose depth column some lit bin reaches (None:
     all), the only depth columns formed: H over ``pack``'s unknowns less the other depths, in
     their order (the depths left out have exact zero columns)."""
     N, T = model.N, model.T
@@ -52,11 +54,10 @@ def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=N
     # nodes' stencils allow); albedo columns: one entry per window bin
     # (int32 indices: half the index traffic of the COO -> CSR conversion)
     # (``lit``: the bins whose patch derivatives were formed, the others' are zeros; None: all)
-    dl = loc[:6] if lit is None else np.take(loc[:6], lit, axis=1)
-    r32 = (rows if lit is None else np.take(rows, lit)).astype(np.int32)
-    n32 = (node if lit is None else np.take(node, lit)).astype(np.int32)
+    rl, nl = (rows, node) if lit is None else (np.take(rows, lit), np.take(node, lit))
+    r32, n32 = rl.astype(np.int32), nl.astype(np.int32)
     cols = (n32[None] + np.int32(N) * np.arange(6, dtype=np.int32)[:, None]).ravel()
-    Jl = sp.coo_matrix((dl.ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
+    Jl = sp.coo_matrix((dv[:6].ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
     Jz = (Jl @ model.ops_stack).tocoo()
     del Jl
     if zkeep is None:
@@ -66,17 +67,17 @@ def chunk_gram(model, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit=N
         zmap[zkeep] = np.arange(nz)
         Jc[Jz.row, zmap[Jz.col]] = Jz.data
     del Jz
-    Jc.ravel()[rows * C + nz + node] = loc[6]
+    Jc.ravel()[rows * C + nz + node] = la
     for i, c in enumerate(pre):
         Jc[:, g0 + i] = c.ravel()[ru]
     if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
         kmap = np.full(N, -1)
         kmap[model.onodes] = np.arange(K)
-        kk = kmap[node]
+        kk = kmap[nl]
         on = kk >= 0
-        base = rows[on] * C + g0 + ng + npost + model.E * kk[on]
+        base = rl[on] * C + g0 + ng + npost + model.E * kk[on]
         for e in range(model.E):
-            Jc.ravel()[base + e] = loc[7 + e][on]
+            Jc.ravel()[base + e] = dv[6 + e][on]
     if resp.slow:
         Jc = resp.tail_filter(Jc.reshape(nt, T, -1), model.w, axis=1).reshape(nt * T, -1)
     for i, c in enumerate(post):

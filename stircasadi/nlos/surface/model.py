@@ -517,20 +517,18 @@ class SurfaceModel:
             node = pe % N
             er = ef.ravel()[rows_loc]
             nl, erl = (node, er) if lit is None else (np.take(node, lit), np.take(er, lit))
-            # rows 0-5 the patch's unknowns, 6 the albedo, 7.. the centroid offsets [shrinks] (with any)
-            loc = (np.empty if lit is None else np.zeros)((7 + self.E if self.K else 7, len(pe)))
-            gl = np.empty((len(loc), N))
-            for c in range(6 + self.E if self.K else 6):
+            # the lit bins' derivatives ``dv``: rows 0-5 the patch's unknowns, 6.. the centroid
+            # offsets [shrinks] (with any); the albedo's ``la`` over every bin; their node sums
+            # ``gl``: rows 0-5 the patch's, 6 the albedo's, 7.. the offsets'
+            nd = 6 + self.E if self.K else 6
+            dv = np.empty((nd, len(pl)))
+            gl = np.empty((nd + 1, N))
+            for c in range(nd):
                 Cc = np.hstack([Jg[:, :, 0, c], ds[:, :, c], Jg[:, :, 1, c]])
-                v = np.einsum("ej,ej->e", Q, np.take(Cc, pl, axis=0))
-                row = c if c < 6 else c + 1
-                if lit is None:
-                    loc[row] = v
-                else:
-                    loc[row, lit] = v
-                gl[row] = np.bincount(nl, v * erl, minlength=N)
-            loc[6] = np.sum(Ae * Bw, axis=1)
-            gl[6] = np.bincount(node, loc[6] * er, minlength=N)
+                dv[c] = np.einsum("ej,ej->e", Q, np.take(Cc, pl, axis=0))
+                gl[c if c < 6 else c + 1] = np.bincount(nl, dv[c] * erl, minlength=N)
+            la = np.sum(Ae * Bw, axis=1)
+            gl[6] = np.bincount(node, la * er, minlength=N)
             # global columns, binned: core ones before the slow tails (list pre), others after
             shift = to_rows_l(np.sum(Arl * dF, axis=1))                     # d G / d m0
             pre, post = [], []
@@ -557,7 +555,7 @@ class SurfaceModel:
             gc[2 * N:g1] = gcols
             if self.K:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
-            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, loc, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None)
+            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))

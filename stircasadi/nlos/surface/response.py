@@ -114,7 +114,7 @@ class Response:
         """The core's (F, f, f') at offsets ``x`` (already shifted by the mode) for Gaussian
         widths ``s`` (broadcast); with ``need_tail`` also dF/dtail (zeros for a Gaussian).
         ``rows``: F at every row of ``x`` (its first axis), the others at these rows only (the
-        same numbers there)."""
+        same numbers there; ``s`` then has ``x``'s shape)."""
         x = np.asarray(x, float)
         s = np.asarray(s, float)
         F = None
