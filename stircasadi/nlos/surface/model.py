@@ -334,9 +334,9 @@ class SurfaceModel:
         ``need_parts``, ``dF`` / ``dF1`` [/ ``dFt``] (E, S): the bin differences of f, f'
         [and dF/dtail] (their edge values differenced over each bin). ``active`` (N,): the
         nodes whose pairs get windows (the others none: their bins drop out of every sum).
-        ``lit`` (N,): the nodes whose bins need ``dF`` / ``dF1`` [/ ``dFt``] (a zero albedo's
-        multiply it): where some node is not, those come for ``out["lit"]``'s bins only (else
-        ``out["lit"]`` is None)."""
+        ``lit`` (N,): the nodes whose bins need ``dF`` / ``dF1`` [/ ``dFt``] (every sum they
+        enter carries the node's albedo as a factor): where some node is not lit, these come
+        for the bins ``out["lit"]`` only (else ``out["lit"]`` is None)."""
         s = np.sqrt(st.sigma ** 2 + c2)
         K = tau.shape[0]
         w = self.w
@@ -555,7 +555,8 @@ class SurfaceModel:
             gc[2 * N:g1] = gcols
             if self.K:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
-            return chi2c, gc, (chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None)
+            Hc = chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None
+            return chi2c, gc, Hc
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
