@@ -555,8 +555,9 @@ class SurfaceModel:
             gc[2 * N:g1] = gcols
             if self.K:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
-            Hc = chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep) if need_h else None
-            return chi2c, gc, Hc
+            if not need_h:
+                return chi2c, gc, None
+            return chi2c, gc, chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
