@@ -119,7 +119,6 @@ def stanford_twin(path, depth=0.400, side=0.25, tilt_deg=0.0, brdf="retroreflect
     return lam
 
 
-
 def linearise_against_fd(model, st, rng, shape):
     """``model.linearise`` (float64) at ``st`` on noisy data drawn from ``rng`` (the model plus
     1e-3 noise, weights in [0.5, 2], ``shape`` (traces, bins)) against central differences of

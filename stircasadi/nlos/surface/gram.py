@@ -19,15 +19,18 @@ from .blas import gram_lower
 __all__ = ["chunk_gram"]
 
 
-def chunk_gram(model, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit=None, zkeep=None) -> np.ndarray:
+def chunk_gram(model, nt, rows_loc, node, rows_lit, node_lit, dv, la, pre, post, wc, resp, dtype,
+               zkeep=None) -> np.ndarray:
     """J^T W J of one chunk: dense rows over (z, rho, globals) (the chain rule through Gx,
     Gy maps the local gx, gy columns onto z; the slow tails filter the core's columns along
     time). Without slow tails only the rows some pair reaches are formed; the others carry
-    only the background. ``dv``: the local derivatives (patch unknowns, then any centroid
-    offsets [shrinks]) of the bins ``lit`` (None: every bin); ``la``: every bin's albedo
-    derivative. ``zkeep``: the nodes whose depth column some lit bin reaches (None:
-    all), the only depth columns formed: H over ``pack``'s unknowns less the other depths, in
-    their order (the depths left out have exact zero columns)."""
+    only the background. ``rows_loc`` / ``node``: every window bin's chunk row and node;
+    ``rows_lit`` / ``node_lit``: those of the bins whose patch derivatives were formed (a zero
+    albedo's are zeros) and ``dv`` their local derivatives (patch unknowns, then any centroid
+    offsets [shrinks]); ``la``: every bin's albedo derivative. ``zkeep``: the nodes whose depth
+    column some lit bin reaches (None: all), the only depth columns formed: H over ``pack``'s
+    unknowns less the other depths, in their order (the depths left out have exact zero
+    columns)."""
     N, T = model.N, model.T
     nz = N if zkeep is None else len(zkeep)
     g0 = nz + N                           # the first global's column
@@ -53,9 +56,8 @@ def chunk_gram(model, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, li
     # (I, Gx, Gy, Dxx, Dyy, Dxy) in one sparse product (its result is as sparse as the
     # nodes' stencils allow); albedo columns: one entry per window bin
     # (int32 indices: half the index traffic of the COO -> CSR conversion)
-    # (``lit``: the bins whose patch derivatives were formed, the others' are zeros; None: all)
-    rl, nl = (rows, node) if lit is None else (np.take(rows, lit), np.take(node, lit))
-    r32, n32 = rl.astype(np.int32), nl.astype(np.int32)
+    rl = rmap[rows_lit]
+    r32, n32 = rl.astype(np.int32), node_lit.astype(np.int32)
     cols = (n32[None] + np.int32(N) * np.arange(6, dtype=np.int32)[:, None]).ravel()
     Jl = sp.coo_matrix((dv[:6].ravel(), (np.tile(r32, 6), cols)), shape=(R, 6 * N)).tocsr()
     Jz = (Jl @ model.ops_stack).tocoo()
@@ -73,7 +75,7 @@ def chunk_gram(model, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, li
     if K:    # the centroid offsets' columns (core columns: the slow tails filter them too)
         kmap = np.full(N, -1)
         kmap[model.onodes] = np.arange(K)
-        kk = kmap[nl]
+        kk = kmap[node_lit]
         on = kk >= 0
         base = rl[on] * C + g0 + ng + npost + model.E * kk[on]
         for e in range(model.E):

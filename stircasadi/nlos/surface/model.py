@@ -483,8 +483,8 @@ class SurfaceModel:
             Ar = Ae * rr
             rows_loc = self._rows(pe, win["kk"])
 
-            def to_rows(v):          # (E,) window bins -> (nt, T) binned
-                return np.bincount(rows_loc, v, minlength=nt * T).reshape(nt, T)
+            def to_rows(v, at=rows_loc):     # window bins' values at rows ``at`` -> (nt, T) binned
+                return np.bincount(at, v, minlength=nt * T).reshape(nt, T)
 
             Gc = to_rows(np.sum(Ar * Bw, axis=1))
             bgc, d_b1, d_bt = self.background(st, t0, t1)
@@ -503,9 +503,6 @@ class SurfaceModel:
             def on_lit(a):
                 return a if lit is None else np.take(a, lit, axis=0)
             Arl, rows_l = on_lit(Ar), on_lit(rows_loc)
-
-            def to_rows_l(v):        # (lit bins,) -> (nt, T) binned
-                return np.bincount(rows_l, v, minlength=nt * T).reshape(nt, T)
             Q = np.empty((len(pl), 3 * S3))
             np.multiply(on_lit(rr), on_lit(Bw), out=Q[:, :S3])
             np.multiply(Arl, on_lit(s) * dF1, out=Q[:, S3:2 * S3])
@@ -530,13 +527,13 @@ class SurfaceModel:
             la = np.sum(Ae * Bw, axis=1)
             gl[6] = np.bincount(node, la * er, minlength=N)
             # global columns, binned: core ones before the slow tails (list pre), others after
-            shift = to_rows_l(np.sum(Arl * dF, axis=1))                     # d G / d m0
+            shift = to_rows(np.sum(Arl * dF, axis=1), rows_l)               # d G / d m0
             pre, post = [], []
             for name in self.glob:
                 if name == "sigma":
-                    pre.append(to_rows_l(np.sum(Arl * st.sigma * dF1, axis=1)) + dm[0] * shift)
+                    pre.append(to_rows(np.sum(Arl * st.sigma * dF1, axis=1), rows_l) + dm[0] * shift)
                 elif name == "tail":
-                    pre.append(to_rows_l(np.sum(Arl * win["dFt"], axis=1)) + dm[1] * shift)
+                    pre.append(to_rows(np.sum(Arl * win["dFt"], axis=1), rows_l) + dm[1] * shift)
                 elif name.startswith("beta"):
                     i = int(name[4:])
                     from .response import exp_filter
@@ -557,7 +554,8 @@ class SurfaceModel:
                 gc[g1:] = np.stack([gl[7 + e][self.onodes] for e in range(self.E)], axis=1).ravel()
             if not need_h:
                 return chi2c, gc, None
-            return chi2c, gc, chunk_gram(self, nt, rows_loc, node, dv, la, pre, post, wc, resp, dtype, lit, zkeep)
+            return chi2c, gc, chunk_gram(self, nt, rows_loc, node, rows_l, nl, dv, la, pre, post, wc, resp, dtype,
+                                         zkeep)
         # the chunks' sums in chunk order (the same numbers on any number of workers)
         # (chunks on worker threads: each syrk on one BLAS thread, off the GIL, ``blas.py``; one chunk: serial)
         chunks = list(self._chunks(max(T * 7 * N * itemsize * (2 if slow else 1), N * S * 8 * 64 * 9)))
